@@ -1,0 +1,107 @@
+//! `pixl`: the one binary of pixlrelight. A thin layer over the library crates: it parses flags,
+//! turns them into library calls, and reports errors with `anyhow` at this edge only.
+//!
+//! Exit codes: 0 success, 1 error (message on stderr), 2 bad command line (from clap).
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+mod cmd;
+mod ctx;
+
+pub use ctx::Ctx;
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "pixl",
+    version,
+    about = "Relight a photograph under physically authored lights, in one feed-forward pass",
+    long_about = "pixlrelight: relight a single photograph under physically authored lights.\n\n\
+Pipeline: reconstruct (photo + depth -> scene) -> light (add lights / presets) -> render (passes) \
+-> compose (passes -> C_T) -> relight (photo + C_T -> relit photo).\n\n\
+Start with `pixl demo`, which runs the whole pipeline on the bundled example.\n\
+Logs go to stderr; set RUST_LOG=debug for more.",
+    after_help = "Example:\n  pixl demo --out demo-out"
+)]
+struct Cli {
+    /// Print nothing but errors (no progress bars, no summaries).
+    #[arg(long, short, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Run the whole pipeline on the bundled example scene and write an HTML report.
+    Demo(cmd::demo::Args),
+    /// Relight a photograph given its target intrinsics C_T.
+    Relight(cmd::relight::Args),
+    /// Create or inspect network weights.
+    #[command(subcommand)]
+    Model(cmd::model::Command),
+    /// Benchmarks (paper timing protocol: warm-ups, then timed runs).
+    #[command(subcommand)]
+    Bench(cmd::bench::Command),
+    /// Compose C_T = [albedo; shading; residual] from Cycles render passes (paper App. B).
+    Compose(cmd::compose::Args),
+    /// Inspect C_T files.
+    #[command(subcommand)]
+    Intrinsics(cmd::intrinsics::Command),
+    /// Draw corrupted variants of a C_T (paper App. C) as a contact sheet.
+    Augment(cmd::augment::Args),
+    /// Build a scene (mesh, textures, scene.toml) from a photo and its depth map.
+    Reconstruct(cmd::reconstruct::Args),
+    /// Path-trace a scene into Cycles-equivalent render passes.
+    Render(cmd::render::Args),
+    /// Add lights to a scene file.
+    #[command(subcommand)]
+    Light(cmd::light::Command),
+    /// Bridge to Blender (export a scene as a Blender Python script).
+    #[command(subcommand)]
+    Blender(cmd::blender::Command),
+    /// Generate a synthetic multi-illumination dataset with exact intrinsics.
+    Synth(cmd::synth::Args),
+    /// Train the network.
+    Train(cmd::train::Args),
+    /// Evaluate a model and baselines (PSNR / SSIM / LPIPS, timing).
+    Eval(cmd::eval::Args),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    init_logging(cli.quiet);
+    let ctx = Ctx { quiet: cli.quiet };
+    match run(cli.command, &ctx) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
+    match command {
+        Command::Demo(a) => cmd::demo::run(a, ctx),
+        Command::Relight(a) => cmd::relight::run(a, ctx),
+        Command::Model(c) => cmd::model::run(c, ctx),
+        Command::Bench(c) => cmd::bench::run(c, ctx),
+        Command::Compose(a) => cmd::compose::run(a, ctx),
+        Command::Intrinsics(c) => cmd::intrinsics::run(c, ctx),
+        Command::Augment(a) => cmd::augment::run(a, ctx),
+        Command::Reconstruct(a) => cmd::reconstruct::run(a, ctx),
+        Command::Render(a) => cmd::render::run(a, ctx),
+        Command::Light(c) => cmd::light::run(c, ctx),
+        Command::Blender(c) => cmd::blender::run(c, ctx),
+        Command::Synth(a) => cmd::synth::run(a, ctx),
+        Command::Train(a) => cmd::train::run(a, ctx),
+        Command::Eval(a) => cmd::eval::run(a, ctx),
+    }
+}
+
+fn init_logging(quiet: bool) {
+    use tracing_subscriber::EnvFilter;
+    let default = if quiet { "error" } else { "info" };
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new(default));
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).without_time().try_init();
+}

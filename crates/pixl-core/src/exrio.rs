@@ -1,0 +1,144 @@
+//! Named-channel OpenEXR I/O: the layer under C_T files (`albedo.R`, …) and Cycles render-pass
+//! files (`ViewLayer.Diffuse Direct.R`, …).
+//!
+//! Reading accepts single-part and multi-part files (Blender 5 writes one part per pass), with
+//! f16, f32 or u32 samples, and returns every channel as `f32` under its *full* name: in a
+//! multi-part file the part's layer name is prefixed (`<part>.<channel>`) unless the channel
+//! name already carries it. All parts must share one size. The header is checked against
+//! [`crate::io::MAX_PIXELS`] before any pixel is allocated.
+//!
+//! Writing produces one single-part file with f32 samples, ZIP-compressed, atomically.
+use crate::error::{CoreError, Result};
+use crate::io::{atomic_write, check_size};
+use std::path::Path;
+
+/// Channels of one EXR image, all of one size, row-major (`y * width + x`).
+#[derive(Clone, Debug, Default)]
+pub struct ExrChannels {
+    pub width: usize,
+    pub height: usize,
+    pub channels: Vec<(String, Vec<f32>)>,
+}
+
+impl ExrChannels {
+    pub fn new(width: usize, height: usize) -> Self {
+        Self { width, height, channels: Vec::new() }
+    }
+
+    pub fn get(&self, name: &str) -> Option<&[f32]> {
+        self.channels.iter().find(|(n, _)| n == name).map(|(_, v)| v.as_slice())
+    }
+
+    pub fn names(&self) -> impl Iterator<Item = &str> {
+        self.channels.iter().map(|(n, _)| n.as_str())
+    }
+
+    /// Adds a channel; its length must be `width * height`.
+    pub fn push(&mut self, name: impl Into<String>, data: Vec<f32>) -> Result<()> {
+        let name = name.into();
+        if data.len() != self.width * self.height {
+            return Err(CoreError::Invalid(format!(
+                "channel {name} has {} samples, expected {}x{}",
+                data.len(),
+                self.width,
+                self.height
+            )));
+        }
+        self.channels.push((name, data));
+        Ok(())
+    }
+}
+
+/// Reads every channel of every part of an EXR file.
+pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
+    use exr::prelude::*;
+    let decode = |e: exr::error::Error| CoreError::Decode { path: path.to_owned(), format: "OpenEXR", reason: e.to_string() };
+    if !path.exists() {
+        return Err(CoreError::NotFound { path: path.to_owned() });
+    }
+    let meta = exr::meta::MetaData::read_from_file(path, false).map_err(decode)?;
+    let Some(first) = meta.headers.first() else {
+        return Err(CoreError::Decode { path: path.to_owned(), format: "OpenEXR", reason: "no image parts".into() });
+    };
+    let (w, h) = (first.layer_size.width(), first.layer_size.height());
+    check_size(path, w, h)?;
+    for hd in meta.headers.iter() {
+        if hd.layer_size.width() != w || hd.layer_size.height() != h {
+            return Err(CoreError::Decode {
+                path: path.to_owned(),
+                format: "OpenEXR",
+                reason: format!(
+                    "parts differ in size ({}x{} vs {w}x{h}); all passes must share one size",
+                    hd.layer_size.width(),
+                    hd.layer_size.height()
+                ),
+            });
+        }
+        if hd.deep {
+            return Err(CoreError::Decode { path: path.to_owned(), format: "OpenEXR", reason: "deep data is not supported".into() });
+        }
+    }
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .non_parallel()
+        .from_file(path)
+        .map_err(decode)?;
+    let mut out = ExrChannels::new(w, h);
+    for layer in &image.layer_data {
+        let prefix = layer.attributes.layer_name.as_ref().map(|t| t.to_string());
+        for ch in &layer.channel_data.list {
+            let ch_name = ch.name.to_string();
+            let name = match &prefix {
+                Some(p) if !p.is_empty() && !ch_name.starts_with(&format!("{p}.")) => format!("{p}.{ch_name}"),
+                _ => ch_name,
+            };
+            let data: Vec<f32> = ch.sample_data.values_as_f32().collect();
+            if data.len() != w * h {
+                return Err(CoreError::Decode {
+                    path: path.to_owned(),
+                    format: "OpenEXR",
+                    reason: format!("channel {name} has {} samples, expected {w}x{h} (subsampled channels are not supported)", data.len()),
+                });
+            }
+            out.channels.push((name, data));
+        }
+    }
+    Ok(out)
+}
+
+/// Writes all channels into one single-part f32 EXR, atomically.
+pub fn write_exr_channels(path: &Path, img: &ExrChannels) -> Result<()> {
+    use exr::prelude::*;
+    if img.width == 0 || img.height == 0 {
+        return Err(CoreError::Empty { path: path.to_owned(), width: img.width, height: img.height });
+    }
+    if img.channels.is_empty() {
+        return Err(CoreError::Invalid(format!("{}: no channels to write", path.display())));
+    }
+    let list: Vec<AnyChannel<FlatSamples>> = img
+        .channels
+        .iter()
+        .map(|(n, d)| AnyChannel::new(n.as_str(), FlatSamples::F32(d.clone())))
+        .collect();
+    let layer = Layer::new(
+        (img.width, img.height),
+        LayerAttributes::default(),
+        Encoding::SMALL_LOSSLESS,
+        AnyChannels::sort(list.into()),
+    );
+    let image = exr::image::Image::from_layer(layer);
+    atomic_write(path, |file| {
+        let mut w = std::io::BufWriter::new(file);
+        image.write().non_parallel().to_buffered(&mut w).map_err(|e| CoreError::Encode {
+            path: path.to_owned(),
+            format: "OpenEXR",
+            reason: e.to_string(),
+        })?;
+        use std::io::Write;
+        w.flush().map_err(|e| CoreError::io(path, e))
+    })
+}

@@ -1,0 +1,313 @@
+//! Image files in and out: PNG (8/16-bit), JPEG, OpenEXR.
+//!
+//! - PNG/JPEG load as stored (sRGB-encoded) values in [0, 1]; 16-bit PNG keeps all 16 bits
+//!   (`v / 65535`, exact in f32), so a 16-bit PNG written back with [`write_image`] is identical.
+//! - EXR loads `R,G,B[,A]` (or `Y`) as stored, linear.
+//! - Before decoding, the header's size is checked: empty images and anything over
+//!   [`MAX_PIXELS`] are refused without allocating.
+//! - Every write is atomic ([`atomic_write`]): a temporary file beside the target, fsync, rename.
+//!   A failure leaves no partial file behind.
+use crate::error::{CoreError, Result};
+use crate::exrio::{read_exr_channels, write_exr_channels, ExrChannels};
+use crate::image::Image;
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+/// Largest image accepted, in pixels (8192 × 8192).
+pub const MAX_PIXELS: usize = 8192 * 8192;
+
+/// Refuses empty and oversized images, naming the file.
+pub fn check_size(path: &Path, width: usize, height: usize) -> Result<()> {
+    if width == 0 || height == 0 {
+        return Err(CoreError::Empty { path: path.to_owned(), width, height });
+    }
+    if width.saturating_mul(height) > MAX_PIXELS {
+        return Err(CoreError::TooLarge { path: path.to_owned(), width, height, limit: MAX_PIXELS });
+    }
+    Ok(())
+}
+
+/// The lower-cased extension of a path ("" if none).
+pub fn extension(path: &Path) -> String {
+    path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase()
+}
+
+/// Writes `path` atomically: `write` fills a temporary file in the same directory, which is
+/// then fsynced and renamed over `path`. On any error the temporary file is removed.
+pub fn atomic_write(path: &Path, write: impl FnOnce(&mut File) -> Result<()>) -> Result<()> {
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
+        _ => PathBuf::from("."),
+    };
+    if !dir.is_dir() {
+        return Err(CoreError::Io {
+            path: path.to_owned(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, format!("output directory {} does not exist", dir.display())),
+        });
+    }
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
+    let tmp = dir.join(format!(".{name}.tmp-{}-{n}", std::process::id()));
+    let result = (|| {
+        let mut file = File::create(&tmp).map_err(|e| CoreError::io(path, e))?;
+        write(&mut file)?;
+        file.sync_all().map_err(|e| CoreError::io(path, e))?;
+        drop(file);
+        std::fs::rename(&tmp, path).map_err(|e| CoreError::io(path, e))
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// Writes bytes atomically.
+pub fn atomic_write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
+    atomic_write(path, |f| {
+        use std::io::Write;
+        f.write_all(bytes).map_err(|e| CoreError::io(path, e))
+    })
+}
+
+/// Reads a PNG, JPEG or EXR image with its own channel count (1–4).
+pub fn read_image(path: &Path) -> Result<Image> {
+    if !path.exists() {
+        return Err(CoreError::NotFound { path: path.to_owned() });
+    }
+    match extension(path).as_str() {
+        "png" | "jpg" | "jpeg" => read_ldr(path),
+        "exr" => read_exr_image(path),
+        _ => Err(CoreError::UnknownExtension { path: path.to_owned(), expected: "png, jpg, jpeg, exr" }),
+    }
+}
+
+/// Reads an image as 3-channel RGB: grey is replicated, alpha dropped.
+pub fn read_rgb(path: &Path) -> Result<Image> {
+    let img = read_image(path)?;
+    match img.channels {
+        3 => Ok(img),
+        4 => Ok(img.select_channels(0..3)),
+        1 | 2 => {
+            let mut out = Image::new(img.width, img.height, 3);
+            for (o, px) in out.data.chunks_exact_mut(3).zip(img.data.chunks_exact(img.channels)) {
+                o.fill(px[0]);
+            }
+            Ok(out)
+        }
+        n => Err(CoreError::Channels { path: path.to_owned(), expected: "1 to 4".into(), found: n.to_string() }),
+    }
+}
+
+/// Reads RGB and checks every value is finite.
+pub fn read_rgb_finite(path: &Path) -> Result<Image> {
+    let img = read_rgb(path)?;
+    ensure_finite(path, &img)?;
+    Ok(img)
+}
+
+/// Errors with the count and first location of non-finite values.
+pub fn ensure_finite(path: &Path, img: &Image) -> Result<()> {
+    if let Some((count, x, y, c)) = img.find_non_finite() {
+        let channel = ["R", "G", "B", "A"].get(c).map(|s| s.to_string()).unwrap_or(c.to_string());
+        return Err(CoreError::NonFinite { path: path.to_owned(), count, x, y, channel });
+    }
+    Ok(())
+}
+
+fn read_ldr(path: &Path) -> Result<Image> {
+    let fmt = if extension(path) == "png" { "PNG" } else { "JPEG" };
+    let decode = |e: image::ImageError| CoreError::Decode { path: path.to_owned(), format: fmt, reason: e.to_string() };
+    let open = || -> Result<image::ImageReader<std::io::BufReader<File>>> {
+        image::ImageReader::open(path).map_err(|e| CoreError::io(path, e))?.with_guessed_format().map_err(|e| CoreError::io(path, e))
+    };
+    let (w, h) = open()?.into_dimensions().map_err(decode)?;
+    check_size(path, w as usize, h as usize)?;
+    let mut reader = open()?;
+    let mut limits = image::Limits::default();
+    limits.max_alloc = Some((MAX_PIXELS as u64) * 16);
+    reader.limits(limits);
+    let dyn_img = reader.decode().map_err(decode)?;
+    let (w, h) = (dyn_img.width() as usize, dyn_img.height() as usize);
+    use image::DynamicImage as D;
+    let img = match dyn_img {
+        D::ImageLuma8(_) | D::ImageLuma16(_) => {
+            let g = dyn_img.into_luma16();
+            Image::from_vec(w, h, 1, g.into_raw().into_iter().map(|v| v as f32 / 65535.0).collect())?
+        }
+        D::ImageLumaA8(_) | D::ImageLumaA16(_) => {
+            let g = dyn_img.into_luma_alpha16();
+            Image::from_vec(w, h, 2, g.into_raw().into_iter().map(|v| v as f32 / 65535.0).collect())?
+        }
+        D::ImageRgba8(_) | D::ImageRgba16(_) | D::ImageRgba32F(_) => {
+            let g = dyn_img.into_rgba16();
+            Image::from_vec(w, h, 4, g.into_raw().into_iter().map(|v| v as f32 / 65535.0).collect())?
+        }
+        _ => {
+            let g = dyn_img.into_rgb16();
+            Image::from_vec(w, h, 3, g.into_raw().into_iter().map(|v| v as f32 / 65535.0).collect())?
+        }
+    };
+    Ok(img)
+}
+
+fn read_exr_image(path: &Path) -> Result<Image> {
+    let chans = read_exr_channels(path)?;
+    let pick = |suffix: &str| -> Option<&[f32]> {
+        chans.get(suffix).or_else(|| {
+            let mut it = chans.channels.iter().filter(|(n, _)| n.ends_with(&format!(".{suffix}")));
+            match (it.next(), it.next()) {
+                (Some((_, d)), None) => Some(d.as_slice()),
+                _ => None,
+            }
+        })
+    };
+    let names: Vec<&str> = match (pick("R"), pick("G"), pick("B"), pick("Y")) {
+        (Some(_), Some(_), Some(_), _) if pick("A").is_some() => vec!["R", "G", "B", "A"],
+        (Some(_), Some(_), Some(_), _) => vec!["R", "G", "B"],
+        (_, _, _, Some(_)) => vec!["Y"],
+        _ => {
+            let found: Vec<&str> = chans.names().collect();
+            return Err(CoreError::Channels { path: path.to_owned(), expected: "R,G,B[,A] or Y".into(), found: found.join(",") });
+        }
+    };
+    let planes: Vec<&[f32]> = names.iter().filter_map(|n| pick(n)).collect();
+    let (w, h, ch) = (chans.width, chans.height, planes.len());
+    let mut img = Image::new(w, h, ch);
+    for (c, plane) in planes.iter().enumerate() {
+        for (p, v) in plane.iter().enumerate() {
+            img.data[p * ch + c] = *v;
+        }
+    }
+    Ok(img)
+}
+
+/// Writes an image by extension: `.png` as 16-bit (values clamped to [0, 1]), `.jpg` as 8-bit
+/// quality 95, `.exr` as f32 (values as they are). 1–4 channels.
+pub fn write_image(path: &Path, img: &Image) -> Result<()> {
+    match extension(path).as_str() {
+        "png" => write_png(path, img, PngDepth::Sixteen),
+        "jpg" | "jpeg" => write_jpeg(path, img),
+        "exr" => write_exr_image(path, img),
+        _ => Err(CoreError::UnknownExtension { path: path.to_owned(), expected: "png, jpg, jpeg, exr" }),
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PngDepth {
+    Eight,
+    Sixteen,
+}
+
+fn check_writable(path: &Path, img: &Image) -> Result<()> {
+    if img.width == 0 || img.height == 0 {
+        return Err(CoreError::Empty { path: path.to_owned(), width: img.width, height: img.height });
+    }
+    if !(1..=4).contains(&img.channels) {
+        return Err(CoreError::Channels { path: path.to_owned(), expected: "1 to 4".into(), found: img.channels.to_string() });
+    }
+    Ok(())
+}
+
+/// Writes a PNG (values clamped to [0, 1], rounded to nearest).
+pub fn write_png(path: &Path, img: &Image, depth: PngDepth) -> Result<()> {
+    check_writable(path, img)?;
+    let (w, h) = (img.width as u32, img.height as u32);
+    let color = match (img.channels, depth) {
+        (1, PngDepth::Eight) => image::ExtendedColorType::L8,
+        (2, PngDepth::Eight) => image::ExtendedColorType::La8,
+        (3, PngDepth::Eight) => image::ExtendedColorType::Rgb8,
+        (4, PngDepth::Eight) => image::ExtendedColorType::Rgba8,
+        (1, PngDepth::Sixteen) => image::ExtendedColorType::L16,
+        (2, PngDepth::Sixteen) => image::ExtendedColorType::La16,
+        (3, PngDepth::Sixteen) => image::ExtendedColorType::Rgb16,
+        _ => image::ExtendedColorType::Rgba16,
+    };
+    let bytes: Vec<u8> = match depth {
+        PngDepth::Eight => img.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect(),
+        // PNG stores 16-bit samples big-endian; the encoder takes native-endian bytes.
+        PngDepth::Sixteen => img
+            .data
+            .iter()
+            .flat_map(|v| (((if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) }) * 65535.0).round() as u16).to_ne_bytes())
+            .collect(),
+    };
+    atomic_write(path, |file| {
+        use image::ImageEncoder;
+        let enc = image::codecs::png::PngEncoder::new(std::io::BufWriter::new(file));
+        enc.write_image(&bytes, w, h, color).map_err(|e| CoreError::Encode { path: path.to_owned(), format: "PNG", reason: e.to_string() })
+    })
+}
+
+fn write_jpeg(path: &Path, img: &Image) -> Result<()> {
+    check_writable(path, img)?;
+    let rgb = match img.channels {
+        3 => img.clone(),
+        4 => img.select_channels(0..3),
+        _ => img.select_channels(0..1),
+    };
+    let color = if rgb.channels == 3 { image::ExtendedColorType::Rgb8 } else { image::ExtendedColorType::L8 };
+    let bytes: Vec<u8> = rgb.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+    atomic_write(path, |file| {
+        use image::ImageEncoder;
+        let enc = image::codecs::jpeg::JpegEncoder::new_with_quality(std::io::BufWriter::new(file), 95);
+        enc.write_image(&bytes, rgb.width as u32, rgb.height as u32, color)
+            .map_err(|e| CoreError::Encode { path: path.to_owned(), format: "JPEG", reason: e.to_string() })
+    })
+}
+
+fn write_exr_image(path: &Path, img: &Image) -> Result<()> {
+    check_writable(path, img)?;
+    let names: &[&str] = match img.channels {
+        1 => &["Y"],
+        2 => &["Y", "A"],
+        3 => &["R", "G", "B"],
+        _ => &["R", "G", "B", "A"],
+    };
+    let mut chans = ExrChannels::new(img.width, img.height);
+    for (c, n) in names.iter().enumerate() {
+        chans.push(*n, img.data.iter().skip(c).step_by(img.channels).copied().collect())?;
+    }
+    write_exr_channels(path, &chans)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn png16_and_exr_roundtrip_exactly() {
+        let dir = tempfile::tempdir().unwrap();
+        let img = Image::from_fn(7, 5, 3, |x, y, c| ((x * 7919 + y * 104729 + c * 13) % 65536) as f32 / 65535.0);
+        for name in ["a.png", "a.exr"] {
+            let p = dir.path().join(name);
+            write_image(&p, &img).unwrap();
+            assert_eq!(read_rgb(&p).unwrap(), img, "{name}");
+        }
+        let hdr = img.map(|v| v * 100.0 - 3.0);
+        let p = dir.path().join("hdr.exr");
+        write_image(&p, &hdr).unwrap();
+        assert_eq!(read_rgb(&p).unwrap(), hdr);
+    }
+
+    #[test]
+    fn errors_name_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("bad.png");
+        std::fs::write(&p, b"\x89PNG\r\n\x1a\nnot really").unwrap();
+        let e = read_rgb(&p).unwrap_err().to_string();
+        assert!(e.contains("bad.png"), "{e}");
+        assert!(matches!(read_rgb(&dir.path().join("none.png")), Err(CoreError::NotFound { .. })));
+        let e = write_image(&dir.path().join("no/such/dir/x.png"), &Image::new(2, 2, 3)).unwrap_err();
+        assert!(e.to_string().contains("does not exist"), "{e}");
+    }
+
+    #[test]
+    fn failed_write_leaves_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("x.bin");
+        let r = atomic_write(&p, |_| Err(CoreError::Invalid("boom".into())));
+        assert!(r.is_err());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+}

@@ -1,0 +1,34 @@
+//! `pixl-nn`: the project's own small layer over candle, covering what candle lacks.
+//!
+//! candle's fast inference kernels (`candle_nn::ops::layer_norm`, `softmax_last_dim`, `sdpa`,
+//! `upsample_bilinear2d`) have no backward pass: gradients silently stop at them. Every op here
+//! dispatches on [`needs_grad`]: when any input tracks gradients (a `Var` or derived from one) it
+//! takes a differentiable path built from candle primitives; otherwise it takes the fast path.
+//! So inference is fast and training is correct, with no mode flag to forget.
+//!
+//! - [`norm`]: layer norm (last dim) and channel-first layer norm for ConvNeXt.
+//! - [`ops`]: softmax, bilinear resize, GELU.
+//! - [`rope`]: 2D rotary position embedding.
+//! - [`mlp`]: Linear–GELU–Linear.
+//! - [`dwconv`]: depthwise k×k convolution with its own forward and backward kernels.
+//! - [`attention`]: multi-head scaled-dot-product attention.
+pub mod attention;
+pub mod backbones;
+pub mod dwconv;
+pub mod mlp;
+pub mod norm;
+pub mod ops;
+pub mod rope;
+
+pub use attention::attention;
+pub use dwconv::DepthwiseConv2d;
+pub use mlp::Mlp;
+pub use norm::{LayerNorm, LayerNorm2d};
+pub use rope::Rope2d;
+
+use candle_core::Tensor;
+
+/// Whether any of `xs` takes part in a gradient computation.
+pub fn needs_grad(xs: &[&Tensor]) -> bool {
+    xs.iter().any(|t| t.track_op())
+}

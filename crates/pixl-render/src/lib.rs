@@ -1,0 +1,3 @@
+//! pixl-render
+pub mod mesh;
+pub use mesh::Mesh;
