@@ -19,9 +19,10 @@ pub mod mlp;
 pub mod norm;
 pub mod ops;
 pub mod rope;
+pub mod testing;
 
 pub use attention::attention;
-pub use dwconv::DepthwiseConv2d;
+pub use dwconv::{depthwise_conv2d, DepthwiseConv2d};
 pub use mlp::Mlp;
 pub use norm::{LayerNorm, LayerNorm2d};
 pub use rope::Rope2d;

@@ -10,7 +10,10 @@ pub struct Mlp {
 
 impl Mlp {
     pub fn new(in_dim: usize, hidden: usize, out_dim: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self { fc1: candle_nn::linear(in_dim, hidden, vb.pp("fc1"))?, fc2: candle_nn::linear(hidden, out_dim, vb.pp("fc2"))? })
+        Ok(Self {
+            fc1: candle_nn::linear(in_dim, hidden, vb.pp("fc1"))?,
+            fc2: candle_nn::linear(hidden, out_dim, vb.pp("fc2"))?,
+        })
     }
 }
 

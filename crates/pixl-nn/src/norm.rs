@@ -33,7 +33,11 @@ pub fn layer_norm(xs: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tenso
         return candle_nn::ops::layer_norm(xs, w, b, eps as f32);
     }
     let dtype = xs.dtype();
-    let xs = if dtype == DType::F64 { xs.clone() } else { xs.to_dtype(DType::F32)? };
+    let xs = if dtype == DType::F64 {
+        xs.clone()
+    } else {
+        xs.to_dtype(DType::F32)?
+    };
     let mean = xs.mean_keepdim(D::Minus1)?;
     let xc = xs.broadcast_sub(&mean)?;
     let var = xc.sqr()?.mean_keepdim(D::Minus1)?;
@@ -48,7 +52,9 @@ pub struct LayerNorm2d {
 
 impl LayerNorm2d {
     pub fn new(channels: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
-        Ok(Self { inner: LayerNorm::new(channels, eps, vb)? })
+        Ok(Self {
+            inner: LayerNorm::new(channels, eps, vb)?,
+        })
     }
 }
 
