@@ -22,7 +22,11 @@ pub struct ExrChannels {
 
 impl ExrChannels {
     pub fn new(width: usize, height: usize) -> Self {
-        Self { width, height, channels: Vec::new() }
+        Self {
+            width,
+            height,
+            channels: Vec::new(),
+        }
     }
 
     pub fn get(&self, name: &str) -> Option<&[f32]> {
@@ -51,32 +55,49 @@ impl ExrChannels {
 
 /// Reads every channel of every part of an EXR file.
 pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
-    use exr::prelude::*;
-    let decode = |e: exr::error::Error| CoreError::Decode { path: path.to_owned(), format: "OpenEXR", reason: e.to_string() };
     if !path.exists() {
         return Err(CoreError::NotFound { path: path.to_owned() });
     }
-    let meta = exr::meta::MetaData::read_from_file(path, false).map_err(decode)?;
+    let bytes = std::fs::read(path).map_err(|e| CoreError::io(path, e))?;
+    read_exr_channels_from_bytes(&bytes, path)
+}
+
+/// Reads every channel of every part of an in-memory EXR file; `path` only names it in errors.
+pub fn read_exr_channels_from_bytes(bytes: &[u8], path: &Path) -> Result<ExrChannels> {
+    use exr::prelude::*;
+    let decode = |e: exr::error::Error| CoreError::Decode {
+        path: path.to_owned(),
+        format: "OpenEXR",
+        reason: e.to_string(),
+    };
+    let bad = |reason: String| CoreError::Decode {
+        path: path.to_owned(),
+        format: "OpenEXR",
+        reason,
+    };
+    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false).map_err(decode)?;
     let Some(first) = meta.headers.first() else {
-        return Err(CoreError::Decode { path: path.to_owned(), format: "OpenEXR", reason: "no image parts".into() });
+        return Err(bad("no image parts".into()));
     };
     let (w, h) = (first.layer_size.width(), first.layer_size.height());
     check_size(path, w, h)?;
+    let mut total_samples = 0usize;
     for hd in meta.headers.iter() {
         if hd.layer_size.width() != w || hd.layer_size.height() != h {
-            return Err(CoreError::Decode {
-                path: path.to_owned(),
-                format: "OpenEXR",
-                reason: format!(
-                    "parts differ in size ({}x{} vs {w}x{h}); all passes must share one size",
-                    hd.layer_size.width(),
-                    hd.layer_size.height()
-                ),
-            });
+            return Err(bad(format!(
+                "parts differ in size ({}x{} vs {w}x{h}); all passes must share one size",
+                hd.layer_size.width(),
+                hd.layer_size.height()
+            )));
         }
         if hd.deep {
-            return Err(CoreError::Decode { path: path.to_owned(), format: "OpenEXR", reason: "deep data is not supported".into() });
+            return Err(bad("deep data is not supported".into()));
         }
+        total_samples = total_samples.saturating_add(hd.channels.list.len().saturating_mul(w * h));
+    }
+    // Refuse before decoding: the header alone decides how much memory the pixels take.
+    if total_samples > crate::io::MAX_PIXELS.saturating_mul(16) {
+        return Err(bad(format!("{total_samples} samples announced, over the limit")));
     }
     let image = read()
         .no_deep_data()
@@ -85,7 +106,7 @@ pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
         .all_layers()
         .all_attributes()
         .non_parallel()
-        .from_file(path)
+        .from_buffered(std::io::Cursor::new(bytes))
         .map_err(decode)?;
     let mut out = ExrChannels::new(w, h);
     for layer in &image.layer_data {
@@ -98,11 +119,10 @@ pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
             };
             let data: Vec<f32> = ch.sample_data.values_as_f32().collect();
             if data.len() != w * h {
-                return Err(CoreError::Decode {
-                    path: path.to_owned(),
-                    format: "OpenEXR",
-                    reason: format!("channel {name} has {} samples, expected {w}x{h} (subsampled channels are not supported)", data.len()),
-                });
+                return Err(bad(format!(
+                    "channel {name} has {} samples, expected {w}x{h} (subsampled channels are not supported)",
+                    data.len()
+                )));
             }
             out.channels.push((name, data));
         }
@@ -114,7 +134,11 @@ pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
 pub fn write_exr_channels(path: &Path, img: &ExrChannels) -> Result<()> {
     use exr::prelude::*;
     if img.width == 0 || img.height == 0 {
-        return Err(CoreError::Empty { path: path.to_owned(), width: img.width, height: img.height });
+        return Err(CoreError::Empty {
+            path: path.to_owned(),
+            width: img.width,
+            height: img.height,
+        });
     }
     if img.channels.is_empty() {
         return Err(CoreError::Invalid(format!("{}: no channels to write", path.display())));
@@ -133,11 +157,15 @@ pub fn write_exr_channels(path: &Path, img: &ExrChannels) -> Result<()> {
     let image = exr::image::Image::from_layer(layer);
     atomic_write(path, |file| {
         let mut w = std::io::BufWriter::new(file);
-        image.write().non_parallel().to_buffered(&mut w).map_err(|e| CoreError::Encode {
-            path: path.to_owned(),
-            format: "OpenEXR",
-            reason: e.to_string(),
-        })?;
+        image
+            .write()
+            .non_parallel()
+            .to_buffered(&mut w)
+            .map_err(|e| CoreError::Encode {
+                path: path.to_owned(),
+                format: "OpenEXR",
+                reason: e.to_string(),
+            })?;
         use std::io::Write;
         w.flush().map_err(|e| CoreError::io(path, e))
     })

@@ -14,7 +14,12 @@ pub struct Image {
 
 impl Image {
     pub fn new(width: usize, height: usize, channels: usize) -> Self {
-        Self { width, height, channels, data: vec![0.0; width * height * channels] }
+        Self {
+            width,
+            height,
+            channels,
+            data: vec![0.0; width * height * channels],
+        }
     }
 
     pub fn from_vec(width: usize, height: usize, channels: usize, data: Vec<f32>) -> crate::Result<Self> {
@@ -25,7 +30,12 @@ impl Image {
                 width * height * channels
             )));
         }
-        Ok(Self { width, height, channels, data })
+        Ok(Self {
+            width,
+            height,
+            channels,
+            data,
+        })
     }
 
     /// Builds an image from a per-pixel function `f(x, y, c)`.
@@ -38,7 +48,12 @@ impl Image {
                 }
             }
         }
-        Self { width, height, channels, data }
+        Self {
+            width,
+            height,
+            channels,
+            data,
+        }
     }
 
     #[inline]
@@ -99,7 +114,12 @@ impl Image {
         for px in self.data.chunks_exact(self.channels) {
             data.extend_from_slice(&px[range.clone()]);
         }
-        Image { width: self.width, height: self.height, channels: ch, data }
+        Image {
+            width: self.width,
+            height: self.height,
+            channels: ch,
+            data,
+        }
     }
 
     /// First non-finite sample as `(count, x, y, c)`, or `None` if all are finite.
@@ -119,7 +139,10 @@ impl Image {
     }
 
     pub fn map(&self, f: impl Fn(f32) -> f32) -> Image {
-        Image { data: self.data.iter().map(|&v| f(v)).collect(), ..self.clone() }
+        Image {
+            data: self.data.iter().map(|&v| f(v)).collect(),
+            ..self.clone()
+        }
     }
 
     /// Horizontal concatenation of images of equal height and channel count.
@@ -129,7 +152,9 @@ impl Image {
         };
         let (h, ch) = (first.height, first.channels);
         if images.iter().any(|i| i.height != h || i.channels != ch) {
-            return Err(crate::CoreError::Invalid("hstack: images differ in height or channels".into()));
+            return Err(crate::CoreError::Invalid(
+                "hstack: images differ in height or channels".into(),
+            ));
         }
         let w: usize = images.iter().map(|i| i.width).sum();
         let mut out = Image::new(w, h, ch);

@@ -19,17 +19,29 @@ pub const MAX_PIXELS: usize = 8192 * 8192;
 /// Refuses empty and oversized images, naming the file.
 pub fn check_size(path: &Path, width: usize, height: usize) -> Result<()> {
     if width == 0 || height == 0 {
-        return Err(CoreError::Empty { path: path.to_owned(), width, height });
+        return Err(CoreError::Empty {
+            path: path.to_owned(),
+            width,
+            height,
+        });
     }
     if width.saturating_mul(height) > MAX_PIXELS {
-        return Err(CoreError::TooLarge { path: path.to_owned(), width, height, limit: MAX_PIXELS });
+        return Err(CoreError::TooLarge {
+            path: path.to_owned(),
+            width,
+            height,
+            limit: MAX_PIXELS,
+        });
     }
     Ok(())
 }
 
 /// The lower-cased extension of a path ("" if none).
 pub fn extension(path: &Path) -> String {
-    path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase()
+    path.extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase()
 }
 
 /// Writes `path` atomically: `write` fills a temporary file in the same directory, which is
@@ -42,7 +54,10 @@ pub fn atomic_write(path: &Path, write: impl FnOnce(&mut File) -> Result<()>) ->
     if !dir.is_dir() {
         return Err(CoreError::Io {
             path: path.to_owned(),
-            source: std::io::Error::new(std::io::ErrorKind::NotFound, format!("output directory {} does not exist", dir.display())),
+            source: std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                format!("output directory {} does not exist", dir.display()),
+            ),
         });
     }
     static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
@@ -78,7 +93,10 @@ pub fn read_image(path: &Path) -> Result<Image> {
     match extension(path).as_str() {
         "png" | "jpg" | "jpeg" => read_ldr(path),
         "exr" => read_exr_image(path),
-        _ => Err(CoreError::UnknownExtension { path: path.to_owned(), expected: "png, jpg, jpeg, exr" }),
+        _ => Err(CoreError::UnknownExtension {
+            path: path.to_owned(),
+            expected: "png, jpg, jpeg, exr",
+        }),
     }
 }
 
@@ -95,7 +113,11 @@ pub fn read_rgb(path: &Path) -> Result<Image> {
             }
             Ok(out)
         }
-        n => Err(CoreError::Channels { path: path.to_owned(), expected: "1 to 4".into(), found: n.to_string() }),
+        n => Err(CoreError::Channels {
+            path: path.to_owned(),
+            expected: "1 to 4".into(),
+            found: n.to_string(),
+        }),
     }
 }
 
@@ -109,17 +131,33 @@ pub fn read_rgb_finite(path: &Path) -> Result<Image> {
 /// Errors with the count and first location of non-finite values.
 pub fn ensure_finite(path: &Path, img: &Image) -> Result<()> {
     if let Some((count, x, y, c)) = img.find_non_finite() {
-        let channel = ["R", "G", "B", "A"].get(c).map(|s| s.to_string()).unwrap_or(c.to_string());
-        return Err(CoreError::NonFinite { path: path.to_owned(), count, x, y, channel });
+        let channel = ["R", "G", "B", "A"]
+            .get(c)
+            .map(|s| s.to_string())
+            .unwrap_or(c.to_string());
+        return Err(CoreError::NonFinite {
+            path: path.to_owned(),
+            count,
+            x,
+            y,
+            channel,
+        });
     }
     Ok(())
 }
 
 fn read_ldr(path: &Path) -> Result<Image> {
     let fmt = if extension(path) == "png" { "PNG" } else { "JPEG" };
-    let decode = |e: image::ImageError| CoreError::Decode { path: path.to_owned(), format: fmt, reason: e.to_string() };
+    let decode = |e: image::ImageError| CoreError::Decode {
+        path: path.to_owned(),
+        format: fmt,
+        reason: e.to_string(),
+    };
     let open = || -> Result<image::ImageReader<std::io::BufReader<File>>> {
-        image::ImageReader::open(path).map_err(|e| CoreError::io(path, e))?.with_guessed_format().map_err(|e| CoreError::io(path, e))
+        image::ImageReader::open(path)
+            .map_err(|e| CoreError::io(path, e))?
+            .with_guessed_format()
+            .map_err(|e| CoreError::io(path, e))
     };
     let (w, h) = open()?.into_dimensions().map_err(decode)?;
     check_size(path, w as usize, h as usize)?;
@@ -155,7 +193,10 @@ fn read_exr_image(path: &Path) -> Result<Image> {
     let chans = read_exr_channels(path)?;
     let pick = |suffix: &str| -> Option<&[f32]> {
         chans.get(suffix).or_else(|| {
-            let mut it = chans.channels.iter().filter(|(n, _)| n.ends_with(&format!(".{suffix}")));
+            let mut it = chans
+                .channels
+                .iter()
+                .filter(|(n, _)| n.ends_with(&format!(".{suffix}")));
             match (it.next(), it.next()) {
                 (Some((_, d)), None) => Some(d.as_slice()),
                 _ => None,
@@ -168,7 +209,11 @@ fn read_exr_image(path: &Path) -> Result<Image> {
         (_, _, _, Some(_)) => vec!["Y"],
         _ => {
             let found: Vec<&str> = chans.names().collect();
-            return Err(CoreError::Channels { path: path.to_owned(), expected: "R,G,B[,A] or Y".into(), found: found.join(",") });
+            return Err(CoreError::Channels {
+                path: path.to_owned(),
+                expected: "R,G,B[,A] or Y".into(),
+                found: found.join(","),
+            });
         }
     };
     let planes: Vec<&[f32]> = names.iter().filter_map(|n| pick(n)).collect();
@@ -189,7 +234,10 @@ pub fn write_image(path: &Path, img: &Image) -> Result<()> {
         "png" => write_png(path, img, PngDepth::Sixteen),
         "jpg" | "jpeg" => write_jpeg(path, img),
         "exr" => write_exr_image(path, img),
-        _ => Err(CoreError::UnknownExtension { path: path.to_owned(), expected: "png, jpg, jpeg, exr" }),
+        _ => Err(CoreError::UnknownExtension {
+            path: path.to_owned(),
+            expected: "png, jpg, jpeg, exr",
+        }),
     }
 }
 
@@ -201,10 +249,18 @@ pub enum PngDepth {
 
 fn check_writable(path: &Path, img: &Image) -> Result<()> {
     if img.width == 0 || img.height == 0 {
-        return Err(CoreError::Empty { path: path.to_owned(), width: img.width, height: img.height });
+        return Err(CoreError::Empty {
+            path: path.to_owned(),
+            width: img.width,
+            height: img.height,
+        });
     }
     if !(1..=4).contains(&img.channels) {
-        return Err(CoreError::Channels { path: path.to_owned(), expected: "1 to 4".into(), found: img.channels.to_string() });
+        return Err(CoreError::Channels {
+            path: path.to_owned(),
+            expected: "1 to 4".into(),
+            found: img.channels.to_string(),
+        });
     }
     Ok(())
 }
@@ -224,7 +280,11 @@ pub fn write_png(path: &Path, img: &Image, depth: PngDepth) -> Result<()> {
         _ => image::ExtendedColorType::Rgba16,
     };
     let bytes: Vec<u8> = match depth {
-        PngDepth::Eight => img.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect(),
+        PngDepth::Eight => img
+            .data
+            .iter()
+            .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+            .collect(),
         // PNG stores 16-bit samples big-endian; the encoder takes native-endian bytes.
         PngDepth::Sixteen => img
             .data
@@ -235,7 +295,11 @@ pub fn write_png(path: &Path, img: &Image, depth: PngDepth) -> Result<()> {
     atomic_write(path, |file| {
         use image::ImageEncoder;
         let enc = image::codecs::png::PngEncoder::new(std::io::BufWriter::new(file));
-        enc.write_image(&bytes, w, h, color).map_err(|e| CoreError::Encode { path: path.to_owned(), format: "PNG", reason: e.to_string() })
+        enc.write_image(&bytes, w, h, color).map_err(|e| CoreError::Encode {
+            path: path.to_owned(),
+            format: "PNG",
+            reason: e.to_string(),
+        })
     })
 }
 
@@ -246,13 +310,25 @@ fn write_jpeg(path: &Path, img: &Image) -> Result<()> {
         4 => img.select_channels(0..3),
         _ => img.select_channels(0..1),
     };
-    let color = if rgb.channels == 3 { image::ExtendedColorType::Rgb8 } else { image::ExtendedColorType::L8 };
-    let bytes: Vec<u8> = rgb.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+    let color = if rgb.channels == 3 {
+        image::ExtendedColorType::Rgb8
+    } else {
+        image::ExtendedColorType::L8
+    };
+    let bytes: Vec<u8> = rgb
+        .data
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
     atomic_write(path, |file| {
         use image::ImageEncoder;
         let enc = image::codecs::jpeg::JpegEncoder::new_with_quality(std::io::BufWriter::new(file), 95);
         enc.write_image(&bytes, rgb.width as u32, rgb.height as u32, color)
-            .map_err(|e| CoreError::Encode { path: path.to_owned(), format: "JPEG", reason: e.to_string() })
+            .map_err(|e| CoreError::Encode {
+                path: path.to_owned(),
+                format: "JPEG",
+                reason: e.to_string(),
+            })
     })
 }
 
@@ -278,7 +354,9 @@ mod tests {
     #[test]
     fn png16_and_exr_roundtrip_exactly() {
         let dir = tempfile::tempdir().unwrap();
-        let img = Image::from_fn(7, 5, 3, |x, y, c| ((x * 7919 + y * 104729 + c * 13) % 65536) as f32 / 65535.0);
+        let img = Image::from_fn(7, 5, 3, |x, y, c| {
+            ((x * 7919 + y * 104729 + c * 13) % 65536) as f32 / 65535.0
+        });
         for name in ["a.png", "a.exr"] {
             let p = dir.path().join(name);
             write_image(&p, &img).unwrap();
@@ -297,7 +375,10 @@ mod tests {
         std::fs::write(&p, b"\x89PNG\r\n\x1a\nnot really").unwrap();
         let e = read_rgb(&p).unwrap_err().to_string();
         assert!(e.contains("bad.png"), "{e}");
-        assert!(matches!(read_rgb(&dir.path().join("none.png")), Err(CoreError::NotFound { .. })));
+        assert!(matches!(
+            read_rgb(&dir.path().join("none.png")),
+            Err(CoreError::NotFound { .. })
+        ));
         let e = write_image(&dir.path().join("no/such/dir/x.png"), &Image::new(2, 2, 3)).unwrap_err();
         assert!(e.to_string().contains("does not exist"), "{e}");
     }

@@ -45,8 +45,9 @@ passes! {
 /// The diffuse passes `pixl compose` requires.
 pub const REQUIRED_FOR_COMPOSE: &[Pass] = &[DIFF_COL, DIFF_DIR, DIFF_IND];
 /// The non-diffuse passes `pixl compose` uses when present (missing = zero).
-pub const OPTIONAL_FOR_COMPOSE: &[Pass] =
-    &[GLOSS_COL, GLOSS_DIR, GLOSS_IND, TRANS_COL, TRANS_DIR, TRANS_IND, VOLUME_DIR, VOLUME_IND, EMIT];
+pub const OPTIONAL_FOR_COMPOSE: &[Pass] = &[
+    GLOSS_COL, GLOSS_DIR, GLOSS_IND, TRANS_COL, TRANS_DIR, TRANS_IND, VOLUME_DIR, VOLUME_IND, EMIT,
+];
 
 /// The pass a name (short or long, case-sensitive) refers to.
 pub fn by_name(name: &str) -> Option<Pass> {
