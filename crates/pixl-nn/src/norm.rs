@@ -6,6 +6,7 @@
 use candle_core::{DType, Module, Result, Tensor, D};
 use candle_nn::VarBuilder;
 
+/// PyTorch `nn.LayerNorm(dim, eps)` over the last dimension.
 #[derive(Clone, Debug)]
 pub struct LayerNorm {
     pub weight: Tensor,
@@ -27,10 +28,17 @@ impl Module for LayerNorm {
     }
 }
 
-/// Layer norm over the last dimension: `(x - mean) / sqrt(var + eps) * w + b`, biased variance.
+/// Layer norm over the last dimension: `(x - mean) / sqrt(var + eps) * w + b`, biased variance,
+/// `eps` inside the square root (PyTorch semantics). `w`, `b`: `(D)`, same dtype as `xs`.
+///
+/// Fast path (no gradient, f32/f16/bf16): candle's fused kernel, which accumulates in f32 and
+/// computes the variance as `E[x²] − E[x]²` (fine unless `|mean| ≫ std`, ~1e3×). f64 inputs
+/// always take the composed path, which keeps full f64 precision (candle's kernel would round to
+/// f32). Differentiable path: composed candle ops, statistics in f32 (f64 for f64 inputs).
 pub fn layer_norm(xs: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
-    if !crate::needs_grad(&[xs, w, b]) && xs.is_contiguous() {
-        return candle_nn::ops::layer_norm(xs, w, b, eps as f32);
+    let fast_dtype = matches!(xs.dtype(), DType::F32 | DType::F16 | DType::BF16);
+    if !crate::needs_grad(&[xs, w, b]) && fast_dtype {
+        return candle_nn::ops::layer_norm(&xs.contiguous()?, &w.contiguous()?, &b.contiguous()?, eps as f32);
     }
     let dtype = xs.dtype();
     let xs = if dtype == DType::F64 {
@@ -45,6 +53,8 @@ pub fn layer_norm(xs: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tenso
     xn.to_dtype(dtype)?.broadcast_mul(w)?.broadcast_add(b)
 }
 
+/// Layer norm over the channels of a `(B, C, H, W)` tensor, each pixel on its own (ConvNeXt's
+/// "channels_first" LayerNorm). Output `(B, C, H, W)` (a permuted, non-contiguous view).
 #[derive(Clone, Debug)]
 pub struct LayerNorm2d {
     pub inner: LayerNorm,

@@ -1,10 +1,16 @@
 //! Elementwise and resampling ops with a differentiable path.
+//!
+//! - [`softmax_last_dim`]: fast path candle's fused kernel (no backward); differentiable path
+//!   `exp(x − max) / Σ exp(x − max)` from candle primitives (the max is detached: softmax is
+//!   shift-invariant, so this does not change the gradient).
+//! - [`gelu`]: exact erf form, differentiable everywhere.
+//! - [`resize_bilinear`]: PyTorch `F.interpolate(mode="bilinear", align_corners=False)`.
 use candle_core::{DType, Device, Result, Tensor, D};
 
 /// Softmax over the last dimension.
 pub fn softmax_last_dim(xs: &Tensor) -> Result<Tensor> {
-    if !crate::needs_grad(&[xs]) && xs.is_contiguous() {
-        return candle_nn::ops::softmax_last_dim(xs);
+    if !crate::needs_grad(&[xs]) {
+        return candle_nn::ops::softmax_last_dim(&xs.contiguous()?);
     }
     let max = xs.max_keepdim(D::Minus1)?.detach();
     let e = xs.broadcast_sub(&max)?.exp()?;
@@ -17,33 +23,54 @@ pub fn gelu(xs: &Tensor) -> Result<Tensor> {
 }
 
 /// Bilinear resize of `(B, C, H, W)` to `(B, C, h, w)`, PyTorch `F.interpolate(mode="bilinear",
-/// align_corners=False)` semantics (half-pixel centres, edge clamping, no antialiasing).
+/// align_corners=False)` semantics: half-pixel centres, source coordinate
+/// `(o + 0.5)·(n_in / n_out) − 0.5` clamped below at 0, upper neighbour clamped to the last pixel,
+/// no antialiasing when downsampling.
 ///
-/// Written as `Wy · X · Wxᵀ` with sparse-in-effect interpolation matrices, so it is
-/// differentiable through candle's matmul backward.
+/// Differentiable path: `Wy · X · Wxᵀ` with the interpolation matrices of [`interp_matrix`], so it
+/// is differentiable through candle's matmul backward (cost `O(C·H·W·(h + w))`, fine for feature
+/// maps, heavy for full-resolution images). Fast path (no gradient): candle's
+/// `upsample_bilinear2d(h, w, align_corners = false)`, which implements the same formula (checked
+/// against the matrix path in the tests) in one direct pass.
 pub fn resize_bilinear(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
     let (_b, _c, ih, iw) = xs.dims4()?;
     if ih == h && iw == w {
         return Ok(xs.clone());
     }
+    if ih == 0 || iw == 0 || h == 0 || w == 0 {
+        candle_core::bail!("bilinear resize from {ih}x{iw} to {h}x{w}: sizes must be positive");
+    }
+    if !crate::needs_grad(&[xs]) {
+        return xs.upsample_bilinear2d(h, w, false);
+    }
     let dtype = xs.dtype();
-    let wy = interp_matrix(ih, h, xs.device())?.to_dtype(dtype)?; // (h, ih)
-    let wx = interp_matrix(iw, w, xs.device())?.to_dtype(dtype)?; // (w, iw)
+    let matrix = |n_in, n_out| Tensor::from_vec(interp_weights(n_in, n_out), (n_out, n_in), xs.device());
+    let wy = matrix(ih, h)?.to_dtype(dtype)?; // (h, ih)
+    let wx = matrix(iw, w)?.to_dtype(dtype)?; // (w, iw)
     let t = xs.broadcast_matmul(&wx.t()?)?; // (B, C, ih, w)
     wy.broadcast_matmul(&t)
 }
 
-/// Row `o` holds the weights of the input samples that output `o` interpolates.
+/// `(n_out, n_in)` f32 matrix whose row `o` holds the weights of the input samples that output
+/// `o` interpolates (two non-zeros at most, summing to 1). Errors if a size is 0.
 pub fn interp_matrix(n_in: usize, n_out: usize, device: &Device) -> Result<Tensor> {
-    let mut m = vec![0f32; n_out * n_in];
+    if n_in == 0 || n_out == 0 {
+        candle_core::bail!("interpolation matrix from {n_in} to {n_out} samples: sizes must be positive");
+    }
+    Tensor::from_vec(interp_weights(n_in, n_out), (n_out, n_in), device)?.to_dtype(DType::F32)
+}
+
+/// Row-major `(n_out, n_in)` weights in f64; `n_in, n_out > 0`.
+fn interp_weights(n_in: usize, n_out: usize) -> Vec<f64> {
+    let mut m = vec![0f64; n_out * n_in];
     let scale = n_in as f64 / n_out as f64;
     for o in 0..n_out {
         let src = ((o as f64 + 0.5) * scale - 0.5).max(0.0);
         let i0 = (src.floor() as usize).min(n_in - 1);
         let i1 = (i0 + 1).min(n_in - 1);
-        let f = (src - i0 as f64) as f32;
+        let f = (src - i0 as f64).clamp(0.0, 1.0);
         m[o * n_in + i0] += 1.0 - f;
         m[o * n_in + i1] += f;
     }
-    Tensor::from_vec(m, (n_out, n_in), device)?.to_dtype(DType::F32)
+    m
 }

@@ -3,7 +3,7 @@
 //! The head dimension `D` is split in two halves: the first half rotates by the token's row
 //! `y`, the second by its column `x`. Within a half of size `D/2`, pairs `(i, i + D/4)` rotate
 //! by angle `pos · base^(-i / (D/4))` ("rotate-half" convention), `i < D/4`.
-use candle_core::{DType, Device, Result, Tensor, D};
+use candle_core::{Device, Result, Tensor, D};
 
 #[derive(Clone, Debug)]
 pub struct Rope2d {
@@ -13,6 +13,8 @@ pub struct Rope2d {
 }
 
 impl Rope2d {
+    /// Tables for `grid_h × grid_w` tokens with `head_dim` channels per head (a multiple of 4);
+    /// `base` sets the frequencies `base^(-i / (head_dim/4))` (e.g. 100 for patch grids).
     pub fn new(head_dim: usize, grid_h: usize, grid_w: usize, base: f64, device: &Device) -> Result<Self> {
         if head_dim % 4 != 0 {
             candle_core::bail!("2D RoPE needs a head dimension divisible by 4, got {head_dim}");
@@ -41,9 +43,15 @@ impl Rope2d {
         })
     }
 
-    /// Rotates `(B, H, N, D)` queries or keys.
+    /// Rotates `(B, H, N, D)` queries or keys (any leading dims; the last two must be the
+    /// table's `(N, D)`). Differentiable (elementwise ops), output same shape and dtype.
     pub fn apply(&self, xs: &Tensor) -> Result<Tensor> {
         let d = xs.dim(D::Minus1)?;
+        let n = xs.dim(D::Minus2)?;
+        let (tn, td) = self.cos.dims2()?;
+        if (n, d) != (tn, td) {
+            candle_core::bail!("2D RoPE built for {tn} tokens of dim {td}, applied to {n} tokens of dim {d}");
+        }
         let q = d / 4;
         let dtype = xs.dtype();
         let (cos, sin) = (self.cos.to_dtype(dtype)?, self.sin.to_dtype(dtype)?);
@@ -56,6 +64,3 @@ impl Rope2d {
         xs.broadcast_mul(&cos)?.add(&rot.broadcast_mul(&sin)?)
     }
 }
-
-#[allow(dead_code)]
-fn _assert_dtype(_: DType) {}
