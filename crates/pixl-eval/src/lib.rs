@@ -4,3 +4,6 @@
 pub mod timing;
 
 pub use timing::{time_runs, Timing, DEFAULT_RUNS, DEFAULT_WARMUPS};
+pub mod metrics;
+
+pub use metrics::{psnr, scale_correct, ssim, MetricError};
