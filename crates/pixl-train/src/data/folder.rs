@@ -1,0 +1,126 @@
+//! Generic folders (`ROOT/<scene>/*.(png|jpg|jpeg|exr)`, minus `*.intrinsics.exr`) and the
+//! synthetic sets written by `pixl synth` (same layout plus `ROOT/scenes.json`, whose entries
+//! carry the split and point at the exact renderer intrinsics of every image).
+use super::{default_split, entry_with_cache, is_intrinsics_file, keep_pairable, non_empty, sorted_dir};
+use super::{Dataset, ImageEntry, SceneEntry, Split};
+use crate::error::{Result, TrainError};
+use std::path::Path;
+
+pub struct Folder {
+    scenes: Vec<SceneEntry>,
+}
+
+fn is_image(path: &Path) -> bool {
+    path.is_file()
+        && matches!(pixl_core::io::extension(path).as_str(), "png" | "jpg" | "jpeg" | "exr")
+        && !is_intrinsics_file(path)
+}
+
+impl Folder {
+    pub fn open(root: &Path, split: Split) -> Result<Self> {
+        let mut scenes = Vec::new();
+        for dir in sorted_dir(root)?.into_iter().filter(|p| p.is_dir()) {
+            let Some(name) = dir.file_name().and_then(|n| n.to_str()).map(String::from) else {
+                continue;
+            };
+            let images = sorted_dir(&dir)?
+                .into_iter()
+                .filter(|p| is_image(p))
+                .map(entry_with_cache)
+                .collect();
+            scenes.push(SceneEntry { name, images });
+        }
+        let scenes = default_split(root, keep_pairable(root, scenes), split)?;
+        Ok(Self {
+            scenes: non_empty(root, split, scenes)?,
+        })
+    }
+}
+
+impl Dataset for Folder {
+    fn kind(&self) -> &'static str {
+        "folder"
+    }
+    fn scenes(&self) -> &[SceneEntry] {
+        &self.scenes
+    }
+}
+
+/// The manifest `pixl synth` writes as `ROOT/scenes.json`.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct SynthManifest {
+    /// Format version (1).
+    pub version: u32,
+    pub seed: u64,
+    pub size: usize,
+    pub spp: u32,
+    pub scenes: Vec<SynthSceneRecord>,
+}
+
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct SynthSceneRecord {
+    pub name: String,
+    pub split: Split,
+    /// One per lighting: paths relative to ROOT.
+    pub images: Vec<SynthImageRecord>,
+}
+
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct SynthImageRecord {
+    pub image: String,
+    pub intrinsics: String,
+    /// A short description of the lighting (kinds of lights used).
+    pub lighting: String,
+}
+
+pub const MANIFEST: &str = "scenes.json";
+
+pub struct Synth {
+    scenes: Vec<SceneEntry>,
+}
+
+impl Synth {
+    pub fn open(root: &Path, split: Split) -> Result<Self> {
+        let path = root.join(MANIFEST);
+        let text = std::fs::read_to_string(&path).map_err(|e| TrainError::io(&path, e))?;
+        let manifest: SynthManifest = serde_json::from_str(&text).map_err(|e| TrainError::File {
+            path: path.clone(),
+            reason: format!("not a `pixl synth` manifest: {e}"),
+        })?;
+        let mut records = manifest.scenes;
+        records.sort_by(|a, b| a.name.cmp(&b.name));
+        let mut scenes = Vec::new();
+        for rec in records.into_iter().filter(|r| split.keeps(r.split == Split::Test)) {
+            let mut images = Vec::new();
+            for im in rec.images {
+                let (image, intrinsics) = (root.join(&im.image), root.join(&im.intrinsics));
+                if !image.is_file() || !intrinsics.is_file() {
+                    return Err(TrainError::File {
+                        path: path.clone(),
+                        reason: format!(
+                            "scene {} lists {} / {} which do not exist",
+                            rec.name, im.image, im.intrinsics
+                        ),
+                    });
+                }
+                images.push(ImageEntry {
+                    image,
+                    intrinsics: Some(intrinsics),
+                });
+            }
+            scenes.push(SceneEntry { name: rec.name, images });
+        }
+        Ok(Self {
+            scenes: non_empty(root, split, keep_pairable(root, scenes))?,
+        })
+    }
+}
+
+impl Dataset for Synth {
+    fn kind(&self) -> &'static str {
+        "synth"
+    }
+    fn scenes(&self) -> &[SceneEntry] {
+        &self.scenes
+    }
+}

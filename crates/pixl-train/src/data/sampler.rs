@@ -1,0 +1,379 @@
+//! The pair sampler (paper §3.3, App. A "Data"): each sample is two distinct images of one
+//! scene with roles (source, target) drawn at random, the *same* random crop for both — aspect
+//! ratio (short/long side) in `[aspect_min, aspect_max]` = [0.33, 1.0], either orientation —
+//! resized so the longer side is `long_side` (512), and one random horizontal flip applied to
+//! source, target and C_T alike. There is no photometric augmentation of source or target.
+//!
+//! Every draw is a pure function of `(seed, step, index)` ([`Rng::for_stream`]), so the data
+//! order needs no state beyond the step counter and the seed: resuming at step `s` reproduces
+//! exactly what an uninterrupted run would have drawn. Scenes are visited in epochs: global
+//! sample `k = step · batch + index` takes scene `perm_e[k mod n]`, where `perm_e` is the
+//! permutation of the `n` scenes for epoch `e = k div n`, drawn from `(seed, e)`.
+//!
+//! All samples of one step share one output size (so they stack into a batch): the aspect and
+//! orientation are drawn per step; sizes are rounded to a multiple of `multiple` (the model's
+//! patch size) while staying within the aspect bounds.
+use super::{load_image, ImageEntry, SceneEntry};
+use crate::error::{Result, TrainError};
+use pixl_core::{Image, Rng};
+use std::collections::HashMap;
+use std::sync::Mutex;
+
+const STREAM_EPOCH: u64 = 0xE90C;
+const STREAM_STEP: u64 = 0x57E9;
+const STREAM_SAMPLE: u64 = 0x5A3E;
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SamplerConfig {
+    /// Longer side of every training crop after resizing (paper: 512).
+    pub long_side: usize,
+    /// Bounds of the crop aspect ratio, short side / long side (paper: 0.33 and 1.0).
+    pub aspect_min: f32,
+    pub aspect_max: f32,
+    /// The crop covers a fraction in `[min_scale, 1]` of the largest crop of its aspect that fits.
+    pub min_scale: f32,
+    /// Output sides are multiples of this (the model's patch size).
+    pub multiple: usize,
+    /// Random horizontal flip with probability 1/2.
+    pub flip: bool,
+}
+
+impl Default for SamplerConfig {
+    fn default() -> Self {
+        Self {
+            long_side: 512,
+            aspect_min: 0.33,
+            aspect_max: 1.0,
+            min_scale: 1.0,
+            multiple: 16,
+            flip: true,
+        }
+    }
+}
+
+impl SamplerConfig {
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: String| Err(TrainError::Config(format!("sampler: {m}")));
+        if self.multiple == 0 || self.long_side < self.multiple || !self.long_side.is_multiple_of(self.multiple) {
+            return bad(format!(
+                "long_side {} must be a positive multiple of {}",
+                self.long_side, self.multiple
+            ));
+        }
+        if !(self.aspect_min > 0.0 && self.aspect_min <= self.aspect_max && self.aspect_max <= 1.0) {
+            return bad(format!(
+                "need 0 < aspect_min {} <= aspect_max {} <= 1",
+                self.aspect_min, self.aspect_max
+            ));
+        }
+        if !(self.min_scale > 0.0 && self.min_scale <= 1.0) {
+            return bad(format!("min_scale {} must be in (0, 1]", self.min_scale));
+        }
+        Ok(())
+    }
+}
+
+/// A crop rectangle in the pixels of the original images.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CropRect {
+    pub x: usize,
+    pub y: usize,
+    pub width: usize,
+    pub height: usize,
+}
+
+/// One training pair, ready to batch: all three share `width × height`.
+#[derive(Clone, Debug)]
+pub struct Sample {
+    pub scene: String,
+    /// Indices into the scene's images.
+    pub source_index: usize,
+    pub target_index: usize,
+    /// sRGB in [0, 1], 3 channels.
+    pub source: Image,
+    pub target: Image,
+    /// C_T of the target, 9 channels `[albedo RGB, shading RGB, residual RGB]`.
+    pub ct: Image,
+    pub crop: CropRect,
+    pub flipped: bool,
+}
+
+/// Where the sampler gets pixels from. [`DiskLoader`] reads files; tests can provide their own.
+pub trait Loader: Send + Sync {
+    /// The image as sRGB RGB in [0, 1].
+    fn image(&self, entry: &ImageEntry) -> Result<Image>;
+    /// The image's C_T as one 9-channel HWC image.
+    fn intrinsics(&self, entry: &ImageEntry) -> Result<Image>;
+}
+
+/// Reads images and C_T from disk ([`load_image`], [`super::load_intrinsics`]), optionally keeping
+/// every decoded file in memory (for small data sets read over and over).
+#[derive(Default)]
+pub struct DiskLoader {
+    cache: Option<Mutex<HashMap<std::path::PathBuf, Image>>>,
+}
+
+impl DiskLoader {
+    pub fn new(cache: bool) -> Self {
+        Self {
+            cache: cache.then(|| Mutex::new(HashMap::new())),
+        }
+    }
+
+    fn cached(&self, key: &std::path::Path, load: impl FnOnce() -> Result<Image>) -> Result<Image> {
+        let Some(cache) = &self.cache else { return load() };
+        if let Some(img) = cache
+            .lock()
+            .map_err(|_| TrainError::Other("loader cache poisoned".into()))?
+            .get(key)
+        {
+            return Ok(img.clone());
+        }
+        let img = load()?;
+        cache
+            .lock()
+            .map_err(|_| TrainError::Other("loader cache poisoned".into()))?
+            .insert(key.to_owned(), img.clone());
+        Ok(img)
+    }
+}
+
+impl Loader for DiskLoader {
+    fn image(&self, entry: &ImageEntry) -> Result<Image> {
+        self.cached(&entry.image, || load_image(&entry.image))
+    }
+    fn intrinsics(&self, entry: &ImageEntry) -> Result<Image> {
+        let key = super::intrinsics_path(&entry.image).with_extension("ct-cache");
+        self.cached(&key, || super::load_intrinsics_image(entry))
+    }
+}
+
+pub struct Sampler {
+    scenes: Vec<SceneEntry>,
+    cfg: SamplerConfig,
+    seed: u64,
+    batch_size: usize,
+}
+
+impl Sampler {
+    /// `scenes` must each hold ≥ 2 images (the loaders guarantee it).
+    pub fn new(scenes: Vec<SceneEntry>, cfg: SamplerConfig, batch_size: usize, seed: u64) -> Result<Self> {
+        cfg.validate()?;
+        if batch_size == 0 {
+            return Err(TrainError::Config("batch size must be at least 1".into()));
+        }
+        if let Some(s) = scenes.iter().find(|s| s.images.len() < 2) {
+            return Err(TrainError::Config(format!(
+                "scene {} has fewer than two images",
+                s.name
+            )));
+        }
+        if scenes.is_empty() {
+            return Err(TrainError::Config("the sampler needs at least one scene".into()));
+        }
+        Ok(Self {
+            scenes,
+            cfg,
+            seed,
+            batch_size,
+        })
+    }
+
+    pub fn scenes(&self) -> &[SceneEntry] {
+        &self.scenes
+    }
+
+    pub fn config(&self) -> &SamplerConfig {
+        &self.cfg
+    }
+
+    /// Output `(width, height)` of every sample of `step`.
+    pub fn batch_size_px(&self, step: u64) -> (usize, usize) {
+        let mut rng = Rng::for_stream(self.seed, &[STREAM_STEP, step]);
+        let (m, long) = (self.cfg.multiple, self.cfg.long_side);
+        let aspect = rng.uniform(self.cfg.aspect_min, self.cfg.aspect_max);
+        let portrait = rng.bernoulli(0.5);
+        // the shortest/longest short side that keeps the aspect inside its bounds, as multiples of m
+        let lo = ((long as f32 * self.cfg.aspect_min / m as f32).ceil() as usize).max(1) * m;
+        let hi = ((long as f32 * self.cfg.aspect_max / m as f32).floor() as usize * m).max(lo);
+        let short = (((long as f32 * aspect) / m as f32).round() as usize * m).clamp(lo, hi);
+        if portrait {
+            (short, long)
+        } else {
+            (long, short)
+        }
+    }
+
+    /// The scene index of global sample `(step, index)` (epoch-permuted, see module docs).
+    pub fn scene_of(&self, step: u64, index: usize) -> usize {
+        let n = self.scenes.len() as u64;
+        let k = step * self.batch_size as u64 + index as u64;
+        let mut perm: Vec<usize> = (0..self.scenes.len()).collect();
+        Rng::for_stream(self.seed, &[STREAM_EPOCH, k / n]).shuffle(&mut perm);
+        perm[(k % n) as usize]
+    }
+
+    /// Sample `index` of `step`.
+    pub fn sample(&self, step: u64, index: usize, loader: &dyn Loader) -> Result<Sample> {
+        let scene = &self.scenes[self.scene_of(step, index)];
+        let mut rng = Rng::for_stream(self.seed, &[STREAM_SAMPLE, step, index as u64]);
+        let n = scene.images.len();
+        let source_index = rng.below(n);
+        let mut target_index = rng.below(n - 1);
+        if target_index >= source_index {
+            target_index += 1;
+        }
+        let (src_e, tgt_e) = (&scene.images[source_index], &scene.images[target_index]);
+        let source = loader.image(src_e)?;
+        let target = loader.image(tgt_e)?;
+        let ct = loader.intrinsics(tgt_e)?;
+        for (what, img, entry) in [("target", &target, tgt_e), ("C_T", &ct, tgt_e)] {
+            if (img.width, img.height) != (source.width, source.height) {
+                return Err(TrainError::File {
+                    path: entry.image.clone(),
+                    reason: format!(
+                        "{what} is {}x{} but the source {} is {}x{}; images of one scene must share one size",
+                        img.width,
+                        img.height,
+                        src_e.image.display(),
+                        source.width,
+                        source.height
+                    ),
+                });
+            }
+        }
+        let (ow, oh) = self.batch_size_px(step);
+        let crop = draw_crop(
+            &mut rng,
+            source.width,
+            source.height,
+            ow as f32 / oh as f32,
+            self.cfg.min_scale,
+        );
+        let flipped = self.cfg.flip && rng.bernoulli(0.5);
+        let prep = |img: &Image| {
+            let out = crop_resize(img, crop, ow, oh);
+            if flipped {
+                flip_horizontal(&out)
+            } else {
+                out
+            }
+        };
+        Ok(Sample {
+            scene: scene.name.clone(),
+            source_index,
+            target_index,
+            source: prep(&source),
+            target: prep(&target),
+            ct: prep(&ct),
+            crop,
+            flipped,
+        })
+    }
+
+    /// All `batch_size` samples of `step`.
+    pub fn batch(&self, step: u64, loader: &dyn Loader) -> Result<Vec<Sample>> {
+        (0..self.batch_size).map(|i| self.sample(step, i, loader)).collect()
+    }
+}
+
+/// A random crop of aspect `width/height = ratio` inside a `w × h` image: the largest such crop
+/// scaled by a factor in `[min_scale, 1]`, at a uniformly random position.
+fn draw_crop(rng: &mut Rng, w: usize, h: usize, ratio: f32, min_scale: f32) -> CropRect {
+    let (mut cw, mut ch) = if (w as f32 / h as f32) > ratio {
+        ((h as f32 * ratio).round() as usize, h)
+    } else {
+        (w, (w as f32 / ratio).round() as usize)
+    };
+    let scale = rng.uniform(min_scale, 1.0).min(1.0);
+    cw = ((cw as f32 * scale).round() as usize).clamp(1, w);
+    ch = ((ch as f32 * scale).round() as usize).clamp(1, h);
+    let x = rng.below(w - cw + 1);
+    let y = rng.below(h - ch + 1);
+    CropRect {
+        x,
+        y,
+        width: cw,
+        height: ch,
+    }
+}
+
+/// Tent-filter weights mapping `n_in` source samples (starting at `offset`) onto `n_out`: for
+/// every output sample, `(first source index, weights)`. The filter widens with the minification
+/// factor, so downsampling averages (no aliasing) and upsampling interpolates linearly.
+fn resample_weights(offset: usize, n_in: usize, n_out: usize, limit: usize) -> Vec<(usize, Vec<f32>)> {
+    let scale = n_in as f64 / n_out as f64;
+    let support = scale.max(1.0);
+    (0..n_out)
+        .map(|o| {
+            let center = offset as f64 + (o as f64 + 0.5) * scale - 0.5;
+            let lo = (center - support).floor().max(0.0) as usize;
+            let hi = ((center + support).ceil() as usize).min(limit - 1);
+            let mut ws: Vec<f32> = (lo..=hi)
+                .map(|x| (1.0 - (x as f64 - center).abs() / support).max(0.0) as f32)
+                .collect();
+            let sum: f32 = ws.iter().sum();
+            if sum > 0.0 {
+                ws.iter_mut().for_each(|w| *w /= sum);
+            } else {
+                // centre falls exactly between clamped edges: take the nearest sample
+                ws.iter_mut().for_each(|w| *w = 0.0);
+                let nearest = (center.round().max(lo as f64) as usize).min(hi) - lo;
+                ws[nearest] = 1.0;
+            }
+            (lo, ws)
+        })
+        .collect()
+}
+
+/// Crops `rect` out of `img` and resizes it to `ow × oh` (separable tent filter).
+pub fn crop_resize(img: &Image, rect: CropRect, ow: usize, oh: usize) -> Image {
+    let ch = img.channels;
+    let wx = resample_weights(rect.x, rect.width, ow, img.width);
+    let wy = resample_weights(rect.y, rect.height, oh, img.height);
+    // horizontal pass over the rows the vertical pass will need
+    let (row_lo, row_hi) = (
+        wy.iter().map(|(lo, _)| *lo).min().unwrap_or(0),
+        wy.iter().map(|(lo, w)| lo + w.len()).max().unwrap_or(0),
+    );
+    let mut tmp = vec![0.0f32; (row_hi - row_lo) * ow * ch];
+    for y in row_lo..row_hi {
+        for (o, (lo, ws)) in wx.iter().enumerate() {
+            let dst = &mut tmp[((y - row_lo) * ow + o) * ch..][..ch];
+            for (k, w) in ws.iter().enumerate() {
+                let src = &img.data[(y * img.width + lo + k) * ch..][..ch];
+                for c in 0..ch {
+                    dst[c] += w * src[c];
+                }
+            }
+        }
+    }
+    let mut out = Image::new(ow, oh, ch);
+    for (oy, (lo, ws)) in wy.iter().enumerate() {
+        for x in 0..ow {
+            let dst = &mut out.data[(oy * ow + x) * ch..][..ch];
+            for (k, w) in ws.iter().enumerate() {
+                let src = &tmp[((lo + k - row_lo) * ow + x) * ch..][..ch];
+                for c in 0..ch {
+                    dst[c] += w * src[c];
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Mirror image left ↔ right.
+pub fn flip_horizontal(img: &Image) -> Image {
+    let mut out = img.clone();
+    let (w, ch) = (img.width, img.channels);
+    for y in 0..img.height {
+        for x in 0..w {
+            let src = (y * w + (w - 1 - x)) * ch;
+            let dst = (y * w + x) * ch;
+            out.data[dst..dst + ch].copy_from_slice(&img.data[src..src + ch]);
+        }
+    }
+    out
+}

@@ -1,0 +1,370 @@
+//! Dataset loaders on tiny fake trees, and the pair sampler's invariants: pairing, splits, crop
+//! aspect bounds, identical crop / flip on source, target and C_T.
+use pixl_core::exrio::{write_exr_channels, ExrChannels};
+use pixl_core::{io::write_image, Image};
+use pixl_train::data::sampler::{crop_resize, flip_horizontal, Loader, Sampler, SamplerConfig};
+use pixl_train::data::{self, ImageEntry, SceneEntry, Split};
+use std::path::Path;
+
+fn png(path: &Path, w: usize, h: usize, v: f32) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    write_image(
+        path,
+        &Image::from_fn(w, h, 3, |x, _, c| (v + 0.01 * (x + c) as f32).min(1.0)),
+    )
+    .unwrap();
+}
+
+fn names(ds: &dyn data::Dataset) -> Vec<String> {
+    ds.scenes().iter().map(|s| s.name.clone()).collect()
+}
+
+fn files(s: &SceneEntry) -> Vec<String> {
+    s.images
+        .iter()
+        .map(|e| e.image.file_name().unwrap().to_string_lossy().into_owned())
+        .collect()
+}
+
+#[test]
+fn miiw_pairs_mip_level_and_everett_split() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = dir.path();
+    for scene in ["everett_kitchen1", "main_livingroom", "summer_bath"] {
+        for d in [0, 1, 10, 24] {
+            png(&r.join(scene).join(format!("dir_{d}_mip2.jpg")), 6, 4, 0.5);
+            png(&r.join(scene).join(format!("dir_{d}_mip3.jpg")), 3, 2, 0.5);
+        }
+        png(&r.join(scene).join("materials_mip2.png"), 6, 4, 0.1);
+    }
+    // one scene with a single image cannot pair and is skipped
+    png(&r.join("lonely").join("dir_0_mip2.jpg"), 6, 4, 0.5);
+    let spec = format!("miiw:{}", r.display());
+    let test = data::open(&spec, Split::Test).unwrap();
+    assert_eq!(test.kind(), "miiw");
+    assert_eq!(names(test.as_ref()), ["everett_kitchen1"]);
+    let train = data::open(&spec, Split::Train).unwrap();
+    assert_eq!(names(train.as_ref()), ["main_livingroom", "summer_bath"]);
+    // sorted by direction number, not by string
+    assert_eq!(
+        files(&train.scenes()[0]),
+        ["dir_0_mip2.jpg", "dir_1_mip2.jpg", "dir_10_mip2.jpg", "dir_24_mip2.jpg"]
+    );
+    let mip3 = data::open(&format!("miiw@3:{}", r.display()), Split::All).unwrap();
+    assert_eq!(mip3.scenes().len(), 3);
+    assert!(files(&mip3.scenes()[0]).iter().all(|f| f.ends_with("_mip3.jpg")));
+}
+
+#[test]
+fn bigtime_ignores_masks_and_accepts_flat_scenes() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = dir.path();
+    for f in ["a.jpg", "b.png", "a_mask.png", "b_skymask.png"] {
+        png(&r.join("0001/data").join(f), 4, 4, 0.3);
+    }
+    for f in ["x.jpg", "y.jpg", "z.jpg"] {
+        png(&r.join("0002").join(f), 4, 4, 0.3);
+    }
+    let ds = data::open(&format!("bigtime:{}", r.display()), Split::All).unwrap();
+    assert_eq!(names(ds.as_ref()), ["0001", "0002"]);
+    assert_eq!(files(&ds.scenes()[0]), ["a.jpg", "b.png"]);
+    assert_eq!(files(&ds.scenes()[1]), ["x.jpg", "y.jpg", "z.jpg"]);
+}
+
+#[test]
+fn vidit_groups_by_image_number() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = dir.path();
+    for n in ["000", "001"] {
+        for (t, d) in [(2500, "N"), (4500, "NE"), (6500, "W")] {
+            png(&r.join(format!("Image{n}_{t}_{d}.png")), 4, 4, 0.2);
+        }
+    }
+    png(&r.join("readme.png"), 4, 4, 0.2);
+    let ds = data::open(&format!("vidit:{}", r.display()), Split::All).unwrap();
+    assert_eq!(names(ds.as_ref()), ["Image000", "Image001"]);
+    assert_eq!(
+        files(&ds.scenes()[1]),
+        ["Image001_2500_N.png", "Image001_4500_NE.png", "Image001_6500_W.png"]
+    );
+}
+
+fn write_ct(path: &Path, w: usize, h: usize, f: impl Fn(usize, usize, usize) -> f32) {
+    let mut ch = ExrChannels::new(w, h);
+    for (c, name) in ["albedo", "shading", "residual"]
+        .iter()
+        .flat_map(|g| ["R", "G", "B"].map(|x| format!("{g}.{x}")))
+        .enumerate()
+    {
+        ch.push(name, (0..w * h).map(|p| f(p % w, p / w, c)).collect()).unwrap();
+    }
+    write_exr_channels(path, &ch).unwrap();
+}
+
+#[test]
+fn folder_split_excludes_intrinsics_and_finds_cache() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = dir.path();
+    for s in 0..12 {
+        let sd = r.join(format!("s{s:02}"));
+        png(&sd.join("l0.png"), 4, 4, 0.1);
+        png(&sd.join("l1.png"), 4, 4, 0.2);
+        write_ct(&sd.join("l1.intrinsics.exr"), 4, 4, |x, y, c| {
+            (x + 10 * y + 100 * c) as f32
+        });
+    }
+    let spec = format!("folder:{}", r.display());
+    let all = data::open(&spec, Split::All).unwrap();
+    assert_eq!(all.scenes().len(), 12);
+    assert_eq!(files(&all.scenes()[0]), ["l0.png", "l1.png"]);
+    let test = data::open(&spec, Split::Test).unwrap();
+    assert_eq!(names(test.as_ref()), ["s09"]); // every tenth sorted scene
+    assert_eq!(data::open(&spec, Split::Train).unwrap().scenes().len(), 11);
+    std::fs::write(r.join("test.txt"), "s03\n# comment\ns07\n").unwrap();
+    assert_eq!(names(data::open(&spec, Split::Test).unwrap().as_ref()), ["s03", "s07"]);
+
+    let s0 = &all.scenes()[0];
+    assert_eq!(
+        s0.images[1].intrinsics.as_deref(),
+        Some(r.join("s00/l1.intrinsics.exr").as_path())
+    );
+    let ct = data::load_intrinsics_image(&s0.images[1]).unwrap();
+    assert_eq!((ct.width, ct.height, ct.channels), (4, 4, 9));
+    assert_eq!(ct.get(3, 2, 7), (3 + 20 + 700) as f32);
+    let err = data::load_intrinsics_image(&s0.images[0]).unwrap_err().to_string();
+    assert!(
+        err.contains("l0.png") && err.contains("l0.intrinsics.exr") && err.contains("pixl compose"),
+        "{err}"
+    );
+}
+
+#[test]
+fn bad_specs_are_explained() {
+    for spec in ["nonsense", "foo:/tmp", "miiw:", "vidit@2:/tmp"] {
+        let e = data::open(spec, Split::All).err().expect(spec).to_string();
+        assert!(e.contains(spec), "{e}");
+    }
+    let e = data::open("folder:/definitely/not/here", Split::All)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("/definitely/not/here"), "{e}");
+}
+
+/// Every image of scene `s`, light `l` is a horizontal ramp plus a light-specific offset; C_T is
+/// the same ramp in all 9 channels plus the light id, so crops and flips can be traced.
+struct RampLoader {
+    w: usize,
+    h: usize,
+}
+
+fn ramp(w: usize, h: usize, ch: usize, offset: f32) -> Image {
+    Image::from_fn(w, h, ch, |x, y, c| {
+        offset + x as f32 + 0.001 * y as f32 + 1000.0 * c as f32
+    })
+}
+
+fn light_id(e: &ImageEntry) -> f32 {
+    e.image
+        .file_stem()
+        .unwrap()
+        .to_string_lossy()
+        .trim_start_matches('l')
+        .parse::<f32>()
+        .unwrap()
+}
+
+impl Loader for RampLoader {
+    fn image(&self, e: &ImageEntry) -> pixl_train::Result<Image> {
+        Ok(ramp(self.w, self.h, 3, 100.0 * light_id(e)))
+    }
+    fn intrinsics(&self, e: &ImageEntry) -> pixl_train::Result<Image> {
+        Ok(ramp(self.w, self.h, 9, 100.0 * light_id(e)))
+    }
+}
+
+fn fake_scenes(n: usize, lights: usize) -> Vec<SceneEntry> {
+    (0..n)
+        .map(|s| SceneEntry {
+            name: format!("s{s}"),
+            images: (0..lights)
+                .map(|l| ImageEntry {
+                    image: format!("s{s}/l{l}.png").into(),
+                    intrinsics: None,
+                })
+                .collect(),
+        })
+        .collect()
+}
+
+#[test]
+fn sampler_pairs_are_distinct_and_cover_scenes_per_epoch() {
+    let loader = RampLoader { w: 40, h: 30 };
+    let cfg = SamplerConfig {
+        long_side: 16,
+        multiple: 4,
+        ..Default::default()
+    };
+    let sampler = Sampler::new(fake_scenes(5, 3), cfg, 2, 7).unwrap();
+    let mut seen = Vec::new();
+    let mut roles = std::collections::HashSet::new();
+    for step in 0..15 {
+        for s in sampler.batch(step, &loader).unwrap() {
+            assert_ne!(s.source_index, s.target_index);
+            roles.insert((s.source_index, s.target_index));
+            // source and target come from the right lights: pixel value offset identifies the light
+            let src_light = ((s.source.data[0] - 0.0) / 100.0).floor() as usize;
+            assert!(s.source.data.iter().all(|v| v.is_finite()));
+            assert!(src_light <= 2);
+            seen.push(s.scene);
+        }
+    }
+    // each epoch (5 consecutive global samples) visits every scene exactly once
+    for epoch in seen.chunks(5) {
+        let mut e = epoch.to_vec();
+        e.sort();
+        assert_eq!(e, ["s0", "s1", "s2", "s3", "s4"]);
+    }
+    assert_eq!(roles.len(), 6, "all ordered pairs of 3 lights occur: {roles:?}");
+    // deterministic: same (seed, step, index) → same sample
+    let a = sampler.sample(3, 1, &loader).unwrap();
+    let b = sampler.sample(3, 1, &loader).unwrap();
+    assert_eq!((a.crop, a.flipped, a.source_index), (b.crop, b.flipped, b.source_index));
+    assert_eq!(a.source, b.source);
+}
+
+#[test]
+fn crops_respect_aspect_bounds_and_size() {
+    let loader = RampLoader { w: 120, h: 80 };
+    let cfg = SamplerConfig {
+        long_side: 32,
+        multiple: 4,
+        min_scale: 0.5,
+        ..Default::default()
+    };
+    let sampler = Sampler::new(fake_scenes(2, 2), cfg, 1, 3).unwrap();
+    let (mut portrait, mut landscape, mut min_aspect) = (0, 0, 1.0f32);
+    for step in 0..200 {
+        let s = sampler.sample(step, 0, &loader).unwrap();
+        let (w, h) = (s.source.width, s.source.height);
+        assert_eq!(w.max(h), 32);
+        assert_eq!((w % 4, h % 4), (0, 0));
+        let out_aspect = w.min(h) as f32 / w.max(h) as f32;
+        assert!((0.33..=1.0).contains(&out_aspect), "output aspect {out_aspect}");
+        let c = s.crop;
+        assert!(c.x + c.width <= 120 && c.y + c.height <= 80);
+        let crop_aspect = c.width.min(c.height) as f32 / c.width.max(c.height) as f32;
+        // integer rounding of the crop moves the aspect by at most one pixel on the short side
+        let tol = 1.0 / c.width.max(c.height) as f32;
+        assert!(crop_aspect >= 0.33 - tol && crop_aspect <= 1.0, "crop {c:?}");
+        if w != h {
+            assert_eq!(
+                w > h,
+                c.width > c.height,
+                "crop orientation follows the output: {c:?} vs {w}x{h}"
+            );
+        }
+        min_aspect = min_aspect.min(out_aspect);
+        if h > w {
+            portrait += 1;
+        } else if w > h {
+            landscape += 1;
+        }
+    }
+    assert!(
+        portrait > 20 && landscape > 20,
+        "both orientations: {portrait} / {landscape}"
+    );
+    assert!(min_aspect < 0.5, "narrow crops occur: {min_aspect}");
+}
+
+#[test]
+fn crop_and_flip_are_identical_for_source_target_and_ct() {
+    let (w, h) = (50, 36);
+    let loader = RampLoader { w, h };
+    let cfg = SamplerConfig {
+        long_side: 24,
+        multiple: 4,
+        min_scale: 0.6,
+        ..Default::default()
+    };
+    let sampler = Sampler::new(fake_scenes(3, 4), cfg, 4, 11).unwrap();
+    let (mut flips, mut total) = (0, 0);
+    for step in 0..10 {
+        for s in sampler.batch(step, &loader).unwrap() {
+            total += 1;
+            let (ow, oh) = (s.source.width, s.source.height);
+            let reference = |img: Image| {
+                let out = crop_resize(&img, s.crop, ow, oh);
+                if s.flipped {
+                    flip_horizontal(&out)
+                } else {
+                    out
+                }
+            };
+            let (ls, lt) = (s.source_index as f32, s.target_index as f32);
+            // independent reference: the same crop/flip applied by hand to the originals
+            assert_eq!(s.source, reference(ramp(w, h, 3, 100.0 * ls)));
+            assert_eq!(s.target, reference(ramp(w, h, 3, 100.0 * lt)));
+            assert_eq!(s.ct, reference(ramp(w, h, 9, 100.0 * lt)));
+            // geometry agrees: target − source is the constant light offset everywhere
+            for (a, b) in s.target.data.iter().zip(&s.source.data) {
+                assert!((a - b - 100.0 * (lt - ls)).abs() < 1e-3);
+            }
+            // the ramp increases with x in the original; flipped samples decrease along rows
+            let row = &s.ct.data[..ow * 9];
+            let (first, last) = (row[0], row[(ow - 1) * 9]);
+            assert_eq!(
+                s.flipped,
+                first > last,
+                "flip {} but row goes {first} -> {last}",
+                s.flipped
+            );
+            // the crop's left edge (or right, when flipped) shows up in the values
+            let left = if s.flipped { last } else { first };
+            assert!((left - 100.0 * lt - s.crop.x as f32).abs() < 2.0 * s.crop.width as f32 / ow as f32);
+            flips += s.flipped as usize;
+        }
+    }
+    assert!(flips > 5 && flips < total - 5, "{flips} of {total} flipped");
+}
+
+#[test]
+fn resize_of_a_constant_is_constant_and_of_a_ramp_is_linear() {
+    let img = Image::from_fn(30, 20, 1, |x, _, _| 2.0 * x as f32 + 1.0);
+    let rect = pixl_train::data::sampler::CropRect {
+        x: 4,
+        y: 2,
+        width: 20,
+        height: 10,
+    };
+    // 2× downsampling: the tent of radius 2 over a linear function returns its centre value
+    let out = crop_resize(&img, rect, 10, 5);
+    for x in 1..9 {
+        let centre = 4.0 + (x as f32 + 0.5) * 2.0 - 0.5;
+        assert!(
+            (out.get(x, 2, 0) - (2.0 * centre + 1.0)).abs() < 1e-4,
+            "x {x}: {}",
+            out.get(x, 2, 0)
+        );
+    }
+    let flat = crop_resize(
+        &Image::from_fn(9, 9, 2, |_, _, c| 0.25 + c as f32),
+        rect_all(9, 9),
+        13,
+        4,
+    );
+    assert!(flat
+        .data
+        .chunks(2)
+        .all(|p| (p[0] - 0.25).abs() < 1e-6 && (p[1] - 1.25).abs() < 1e-6));
+}
+
+fn rect_all(w: usize, h: usize) -> pixl_train::data::sampler::CropRect {
+    pixl_train::data::sampler::CropRect {
+        x: 0,
+        y: 0,
+        width: w,
+        height: h,
+    }
+}
