@@ -23,6 +23,8 @@ pub enum TrainError {
     File { path: PathBuf, reason: String },
     #[error("invalid configuration: {0}")]
     Config(String),
+    #[error(transparent)]
+    Intrinsics(#[from] pixl_intrinsics::IntrinsicsError),
     #[error("tensor error: {0}")]
     Candle(#[from] candle_core::Error),
     #[error("{0}")]

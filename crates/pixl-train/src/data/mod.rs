@@ -27,6 +27,7 @@
 //! this cache), else an error saying how to produce it.
 use crate::error::{Result, TrainError};
 use pixl_core::Image;
+use pixl_intrinsics::ct::Ct;
 use std::path::{Path, PathBuf};
 
 mod bigtime;
@@ -247,19 +248,6 @@ pub(crate) fn is_ldr(path: &Path) -> bool {
     matches!(pixl_core::io::extension(path).as_str(), "png" | "jpg" | "jpeg")
 }
 
-/// Channel names of a C_T file, in the order of the 9 channels.
-const CT_CHANNELS: [&str; 9] = [
-    "albedo.R",
-    "albedo.G",
-    "albedo.B",
-    "shading.R",
-    "shading.G",
-    "shading.B",
-    "residual.R",
-    "residual.G",
-    "residual.B",
-];
-
 /// Where the target intrinsics of `entry` live (see the module docs for the rule), or an error
 /// that says how to produce them.
 pub fn intrinsics_file(entry: &ImageEntry) -> Result<PathBuf> {
@@ -276,28 +264,26 @@ pub fn intrinsics_file(entry: &ImageEntry) -> Result<PathBuf> {
     })
 }
 
+/// The target intrinsics of `entry` (exact renderer C_T for synthetic sets, else the cached
+/// `<stem>.intrinsics.exr`), or [`TrainError::MissingIntrinsics`] saying how to produce them.
+pub fn load_intrinsics(entry: &ImageEntry) -> Result<Ct> {
+    let path = intrinsics_file(entry)?;
+    Ok(pixl_intrinsics::ct::read_ct(&path)?)
+}
+
 /// The target intrinsics of `entry` as one 9-channel HWC image `[albedo; shading; residual]`.
 pub fn load_intrinsics_image(entry: &ImageEntry) -> Result<Image> {
-    let path = intrinsics_file(entry)?;
-    let chans = pixl_core::exrio::read_exr_channels(&path)?;
-    let mut planes = Vec::with_capacity(9);
-    for name in CT_CHANNELS {
-        let plane = chans.get(name).ok_or_else(|| TrainError::File {
-            path: path.clone(),
-            reason: format!(
-                "not a C_T file: channel {name} missing (found {})",
-                chans.names().collect::<Vec<_>>().join(", ")
-            ),
-        })?;
-        planes.push(plane);
-    }
-    let (w, h) = (chans.width, chans.height);
+    Ok(ct_to_image(&load_intrinsics(entry)?))
+}
+
+/// A C_T as one 9-channel HWC image `[albedo RGB, shading RGB, residual RGB]`.
+pub fn ct_to_image(ct: &Ct) -> Image {
+    let (w, h) = (ct.width(), ct.height());
     let mut img = Image::new(w, h, 9);
-    for (c, plane) in planes.iter().enumerate() {
-        for (p, v) in plane.iter().enumerate() {
-            img.data[p * 9 + c] = *v;
+    for (g, part) in ct.groups().iter().enumerate() {
+        for (p, px) in part.data.chunks_exact(3).enumerate() {
+            img.data[p * 9 + 3 * g..p * 9 + 3 * g + 3].copy_from_slice(px);
         }
     }
-    pixl_core::io::ensure_finite(&path, &img)?;
-    Ok(img)
+    img
 }
