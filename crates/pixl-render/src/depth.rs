@@ -21,7 +21,8 @@
 //! - OpenEXR: the channel `Z` (or `*.Z`, e.g. Blender's `ViewLayer.Depth.Z`), else `Y`, else `R`,
 //!   else the only channel; values in metres.
 //! - 16-bit greyscale PNG: raw integer × `depth_scale` metres (default [`DEFAULT_DEPTH_SCALE`] =
-//!   1 mm per unit, the Kinect/RealSense convention); 0 means "no depth". 8-bit PNGs are refused.
+//!   1 mm per unit, the Kinect/RealSense convention); 0 reads as depth 0, i.e. "no depth" (its
+//!   triangles are cut). 8-bit PNGs are refused.
 //! - NumPy `.npy` (v1–v3): little-endian `float32`, `float64` (metres) or `uint16` (× `depth_scale`),
 //!   C order, shape `(H, W)` or `(H, W, 1)`.
 use crate::mesh::Mesh;
@@ -383,10 +384,7 @@ fn read_depth_png(path: &Path, depth_scale: f32) -> Result<DepthMap> {
             })
         }
     };
-    let data = raw
-        .into_iter()
-        .map(|v| if v == 0 { f32::NAN } else { v as f32 * depth_scale })
-        .collect();
+    let data = raw.into_iter().map(|v| v as f32 * depth_scale).collect();
     DepthMap::new(w as usize, h as usize, data)
 }
 
@@ -416,18 +414,7 @@ impl NpyArray {
         } else {
             1.0
         };
-        let u16_zero_is_missing = self.dtype == NpyDtype::U16;
-        let data = self
-            .data
-            .into_iter()
-            .map(|v| {
-                if u16_zero_is_missing && v == 0.0 {
-                    f32::NAN
-                } else {
-                    (v * scale) as f32
-                }
-            })
-            .collect();
+        let data = self.data.into_iter().map(|v| (v * scale) as f32).collect();
         DepthMap::new(w, h, data)
     }
 }
