@@ -277,6 +277,7 @@ mod tests {
     }
 
     /// SSIM written the most direct way: 2-D window from its definition, direct loops, f64.
+    #[allow(clippy::needless_range_loop)] // index loops are the point of a naive reference
     fn naive_ssim(a: &Image, b: &Image) -> f64 {
         let (w, h, ch) = (a.width, a.height, a.channels);
         let mut win = [[0f64; 11]; 11];

@@ -252,6 +252,7 @@ mod tests {
 
     /// relu1 of AlexNet against a direct f64 convolution with stride 4, zero padding 2.
     #[test]
+    #[allow(clippy::needless_range_loop)] // index loops are the point of a naive reference
     fn alexnet_first_tap_matches_naive_conv() {
         let map = VarMap::new();
         let net = AlexNet::new(random_vb(&map)).unwrap();
