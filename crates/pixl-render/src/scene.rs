@@ -176,7 +176,14 @@ impl Camera {
         let mut right = cross(self.up, back);
         if length(right) < 1e-6 {
             // Looking along `up`: pick any perpendicular.
-            right = cross(if back[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 0.0, 1.0] }, back);
+            right = cross(
+                if back[0].abs() < 0.9 {
+                    [1.0, 0.0, 0.0]
+                } else {
+                    [0.0, 0.0, 1.0]
+                },
+                back,
+            );
         }
         let right = normalize(right);
         let up = cross(back, right);
@@ -206,7 +213,12 @@ fn ones() -> [f32; 3] {
 
 impl Default for Transform {
     fn default() -> Self {
-        Transform { translate: [0.0; 3], rotate_deg: [0.0; 3], scale: ones(), matrix: None }
+        Transform {
+            translate: [0.0; 3],
+            rotate_deg: [0.0; 3],
+            scale: ones(),
+            matrix: None,
+        }
     }
 }
 
@@ -338,7 +350,12 @@ impl Default for Material {
 impl Material {
     /// A pure Lambertian material of the given albedo (no specular layer).
     pub fn diffuse(rgb: [f32; 3]) -> Self {
-        Material { base_color: Color::Rgb(rgb), roughness: 1.0, specular_ior_level: 0.0, ..Default::default() }
+        Material {
+            base_color: Color::Rgb(rgb),
+            roughness: 1.0,
+            specular_ior_level: 0.0,
+            ..Default::default()
+        }
     }
 
     /// A black, purely emissive material of radiance `strength × rgb`.
@@ -355,7 +372,10 @@ impl Material {
 
 /// A linear RGB colour, or a blackbody temperature.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(untagged, expecting = "a colour: an RGB triple [r, g, b] or a temperature { kelvin = K }")]
+#[serde(
+    untagged,
+    expecting = "a colour: an RGB triple [r, g, b] or a temperature { kelvin = K }"
+)]
 pub enum Color {
     Rgb([f32; 3]),
     Blackbody { kelvin: f32 },
@@ -490,17 +510,19 @@ fn default_sun_angle() -> f32 {
 impl Light {
     pub fn name(&self) -> &str {
         match self {
-            Light::Point { name, .. } | Light::Spot { name, .. } | Light::Area { name, .. } | Light::Sun { name, .. } => {
-                name
-            }
+            Light::Point { name, .. }
+            | Light::Spot { name, .. }
+            | Light::Area { name, .. }
+            | Light::Sun { name, .. } => name,
         }
     }
 
     pub fn color(&self) -> Color {
         match self {
-            Light::Point { color, .. } | Light::Spot { color, .. } | Light::Area { color, .. } | Light::Sun { color, .. } => {
-                *color
-            }
+            Light::Point { color, .. }
+            | Light::Spot { color, .. }
+            | Light::Area { color, .. }
+            | Light::Sun { color, .. } => *color,
         }
     }
 
@@ -509,13 +531,22 @@ impl Light {
         let down = [0.0, -1.0, 0.0];
         match self {
             Light::Point { .. } => None,
-            Light::Spot { position, direction, look_at, .. } | Light::Area { position, direction, look_at, .. } => {
-                Some(match (direction, look_at) {
-                    (Some(d), _) => normalize(*d),
-                    (None, Some(t)) => normalize(sub(*t, *position)),
-                    (None, None) => down,
-                })
+            Light::Spot {
+                position,
+                direction,
+                look_at,
+                ..
             }
+            | Light::Area {
+                position,
+                direction,
+                look_at,
+                ..
+            } => Some(match (direction, look_at) {
+                (Some(d), _) => normalize(*d),
+                (None, Some(t)) => normalize(sub(*t, *position)),
+                (None, None) => down,
+            }),
             Light::Sun { direction, .. } => Some(direction.map(normalize).unwrap_or(down)),
         }
     }
@@ -523,7 +554,9 @@ impl Light {
     /// Area-light extents `(size_x, size_y)` in metres.
     pub fn area_size(&self) -> Option<(f32, f32)> {
         match self {
-            Light::Area { shape, size, size_y, .. } => Some(match shape {
+            Light::Area {
+                shape, size, size_y, ..
+            } => Some(match shape {
                 AreaShape::Square | AreaShape::Disk => (*size, *size),
                 AreaShape::Rectangle | AreaShape::Ellipse => (*size, size_y.unwrap_or(*size)),
             }),
@@ -566,12 +599,26 @@ impl Light {
         };
         self.color().check("color")?;
         match self {
-            Light::Point { position, power, radius, .. } => {
+            Light::Point {
+                position,
+                power,
+                radius,
+                ..
+            } => {
                 finite3(position, "position")?;
                 nonneg(*power, "power")?;
                 nonneg(*radius, "radius")
             }
-            Light::Spot { position, direction, look_at, power, spot_size_deg, blend, radius, .. } => {
+            Light::Spot {
+                position,
+                direction,
+                look_at,
+                power,
+                spot_size_deg,
+                blend,
+                radius,
+                ..
+            } => {
                 finite3(position, "position")?;
                 dir(direction, look_at, position)?;
                 nonneg(*power, "power")?;
@@ -584,7 +631,15 @@ impl Light {
                 }
                 Ok(())
             }
-            Light::Area { position, direction, look_at, size, size_y, power, .. } => {
+            Light::Area {
+                position,
+                direction,
+                look_at,
+                size,
+                size_y,
+                power,
+                ..
+            } => {
                 finite3(position, "position")?;
                 dir(direction, look_at, position)?;
                 nonneg(*power, "power")?;
@@ -598,7 +653,12 @@ impl Light {
                 }
                 Ok(())
             }
-            Light::Sun { direction, strength, angle_deg, .. } => {
+            Light::Sun {
+                direction,
+                strength,
+                angle_deg,
+                ..
+            } => {
                 dir(direction, &None, &[0.0; 3])?;
                 nonneg(*strength, "strength")?;
                 if !(angle_deg.is_finite() && (0.0..=180.0).contains(angle_deg)) {
@@ -635,7 +695,12 @@ fn one() -> f32 {
 
 impl Default for World {
     fn default() -> Self {
-        World { color: default_world_color(), strength: 1.0, image: None, rotation_deg: 0.0 }
+        World {
+            color: default_world_color(),
+            strength: 1.0,
+            image: None,
+            rotation_deg: 0.0,
+        }
     }
 }
 
@@ -709,17 +774,22 @@ impl Scene {
             SceneFormat::Toml => toml::from_str(text).map_err(|e| e.to_string()),
             SceneFormat::Json => serde_json::from_str(text).map_err(|e| e.to_string()),
         };
-        let mut scene = parsed.map_err(|message| RenderError::Parse { path: path.to_owned(), message })?;
+        let mut scene = parsed.map_err(|message| RenderError::Parse {
+            path: path.to_owned(),
+            message,
+        })?;
         scene.base_dir = PathBuf::from(".");
         Ok(scene)
     }
 
     /// Serialises as TOML or JSON (by extension) and writes atomically.
     pub fn save(&self, path: &Path) -> Result<()> {
-        let text = self.to_string_as(SceneFormat::from_path(path)?).map_err(|message| RenderError::Write {
-            path: path.to_owned(),
-            message,
-        })?;
+        let text = self
+            .to_string_as(SceneFormat::from_path(path)?)
+            .map_err(|message| RenderError::Write {
+                path: path.to_owned(),
+                message,
+            })?;
         pixl_core::io::atomic_write_bytes(path, text.as_bytes())?;
         Ok(())
     }
@@ -752,13 +822,25 @@ impl Scene {
     }
 
     fn validate_at(&self, path: &Path) -> Result<()> {
-        let bad = |message: String| RenderError::Invalid { path: path.to_owned(), message };
+        let bad = |message: String| RenderError::Invalid {
+            path: path.to_owned(),
+            message,
+        };
         if self.version > SCENE_VERSION {
-            return Err(bad(format!("scene version {} is newer than supported ({SCENE_VERSION})", self.version)));
+            return Err(bad(format!(
+                "scene version {} is newer than supported ({SCENE_VERSION})",
+                self.version
+            )));
         }
         let c = &self.camera;
-        if c.width == 0 || c.height == 0 || (c.width as usize).saturating_mul(c.height as usize) > pixl_core::io::MAX_PIXELS {
-            return Err(bad(format!("camera size {}x{} is empty or too large", c.width, c.height)));
+        if c.width == 0
+            || c.height == 0
+            || (c.width as usize).saturating_mul(c.height as usize) > pixl_core::io::MAX_PIXELS
+        {
+            return Err(bad(format!(
+                "camera size {}x{} is empty or too large",
+                c.width, c.height
+            )));
         }
         match (c.fov_y_deg, c.focal_px) {
             (Some(_), Some(_)) => return Err(bad("camera: give fov_y_deg or focal_px, not both".into())),
@@ -778,11 +860,17 @@ impl Scene {
         } else {
             let t = c.look_at.unwrap_or(add(c.position, [0.0, 0.0, -1.0]));
             if length(sub(t, c.position)) < 1e-9 || c.position.iter().chain(t.iter()).any(|v| !v.is_finite()) {
-                return Err(bad("camera: look_at must differ from position (and both be finite)".into()));
+                return Err(bad(
+                    "camera: look_at must differ from position (and both be finite)".into()
+                ));
             }
         }
         for (i, o) in self.objects.iter().enumerate() {
-            let who = if o.name.is_empty() { format!("objects[{i}]") } else { format!("object {:?}", o.name) };
+            let who = if o.name.is_empty() {
+                format!("objects[{i}]")
+            } else {
+                format!("object {:?}", o.name)
+            };
             let err = |m: String| bad(format!("{who}: {m}"));
             match &o.shape {
                 Shape::Mesh { .. } => {}
@@ -798,7 +886,11 @@ impl Scene {
                 _ => {}
             }
             let t = &o.transform;
-            if t.translate.iter().chain(&t.rotate_deg).chain(&t.scale).any(|v| !v.is_finite())
+            if t.translate
+                .iter()
+                .chain(&t.rotate_deg)
+                .chain(&t.scale)
+                .any(|v| !v.is_finite())
                 || t.matrix.is_some_and(|m| m.iter().flatten().any(|v| !v.is_finite()))
             {
                 return Err(err("transform has non-finite values".into()));
@@ -820,11 +912,18 @@ impl Scene {
                 return Err(err(format!("material ior {} must be >= 1", m.ior)));
             }
             if !(m.emission_strength.is_finite() && m.emission_strength >= 0.0) {
-                return Err(err(format!("material emission_strength {} must be non-negative", m.emission_strength)));
+                return Err(err(format!(
+                    "material emission_strength {} must be non-negative",
+                    m.emission_strength
+                )));
             }
         }
         for (i, l) in self.lights.iter().enumerate() {
-            let who = if l.name().is_empty() { format!("lights[{i}]") } else { format!("light {:?}", l.name()) };
+            let who = if l.name().is_empty() {
+                format!("lights[{i}]")
+            } else {
+                format!("light {:?}", l.name())
+            };
             l.check().map_err(|m| bad(format!("{who}: {m}")))?;
         }
         if let Some(w) = &self.world {
@@ -852,7 +951,11 @@ impl Scene {
             }
         };
         for (i, o) in self.objects.iter().enumerate() {
-            let who = if o.name.is_empty() { format!("objects[{i}]") } else { format!("object {:?}", o.name) };
+            let who = if o.name.is_empty() {
+                format!("objects[{i}]")
+            } else {
+                format!("object {:?}", o.name)
+            };
             if let Shape::Mesh { path } = &o.shape {
                 check(path, format!("{who}: mesh"))?;
             }
@@ -882,7 +985,11 @@ fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 fn length(a: [f32; 3]) -> f32 {
     (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
@@ -979,10 +1086,19 @@ color = [0.05, 0.05, 0.08]
         assert!(e.contains("radiu") && e.contains("line"), "{e}");
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("s.toml");
-        std::fs::write(&p, EXAMPLE.replace("type = \"quad\", size = [10.0, 10.0]", "type = \"mesh\", path = \"nope.obj\""))
-            .unwrap();
+        std::fs::write(
+            &p,
+            EXAMPLE.replace(
+                "type = \"quad\", size = [10.0, 10.0]",
+                "type = \"mesh\", path = \"nope.obj\"",
+            ),
+        )
+        .unwrap();
         let e = Scene::load(&p).unwrap_err().to_string();
-        assert!(e.contains("nope.obj") && e.contains("not found") && e.contains("s.toml"), "{e}");
+        assert!(
+            e.contains("nope.obj") && e.contains("not found") && e.contains("s.toml"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -994,9 +1110,15 @@ color = [0.05, 0.05, 0.08]
         // fov 90° → focal = h/2.
         assert!((c.focal_for_height(50) - 25.0).abs() < 1e-4);
         // Rotating +90° about X maps +Y to +Z (right-handed).
-        let t = Transform { rotate_deg: [90.0, 0.0, 0.0], ..Default::default() };
+        let t = Transform {
+            rotate_deg: [90.0, 0.0, 0.0],
+            ..Default::default()
+        };
         let m = t.to_matrix();
         let y = [m[0][1], m[1][1], m[2][1]];
-        assert!(y[0].abs() < 1e-6 && y[1].abs() < 1e-6 && (y[2] - 1.0).abs() < 1e-6, "{y:?}");
+        assert!(
+            y[0].abs() < 1e-6 && y[1].abs() < 1e-6 && (y[2] - 1.0).abs() < 1e-6,
+            "{y:?}"
+        );
     }
 }

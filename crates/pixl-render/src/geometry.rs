@@ -1,0 +1,319 @@
+//! Scene geometry for the tracer: every object (mesh file or primitive) turned into world-space
+//! triangles with shading normals, UVs and a material, in one BVH.
+//!
+//! Primitives (before the object transform): `sphere` is a UV sphere of 96 × 48 segments with
+//! analytic smooth normals; `cuboid` has flat faces and outward normals; `quad` lies in the XY
+//! plane facing +Z with UV `(0, 0)` at its `(−x, +y)` corner. Normals are transformed by the
+//! inverse transpose of the object matrix.
+use crate::bvh::{Bvh, Hit, Ray, Tri};
+use crate::error::{RenderError, Result};
+use crate::math::V3;
+use crate::mesh::Mesh;
+use crate::scene::{Scene, Shape};
+use crate::texture::Texture;
+use std::f32::consts::PI;
+
+/// Per-triangle shading data, in BVH order.
+#[derive(Clone, Copy, Debug)]
+pub struct TriAttr {
+    pub n: [V3; 3],
+    pub uv: [[f32; 2]; 3],
+    /// Unit geometric normal (`e1 × e2`).
+    pub ng: V3,
+    pub area: f32,
+    pub material: u32,
+    /// Index into the light list if the triangle is emissive, else `u32::MAX`.
+    pub light: u32,
+}
+
+/// A material resolved for rendering: constants plus optional textures.
+#[derive(Clone, Debug)]
+pub struct MaterialData {
+    pub base: V3,
+    pub base_tex: Option<Texture>,
+    pub roughness: f32,
+    pub roughness_tex: Option<Texture>,
+    pub metallic: f32,
+    pub metallic_tex: Option<Texture>,
+    pub transmission: f32,
+    pub ior: f32,
+    pub specular_level: f32,
+    pub emission: V3,
+}
+
+pub struct Geometry {
+    pub tris: Vec<Tri>,
+    pub attrs: Vec<TriAttr>,
+    pub materials: Vec<MaterialData>,
+    pub bvh: Bvh,
+    pub lo: V3,
+    pub hi: V3,
+}
+
+/// The surface at a hit point.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfaceHit {
+    pub p: V3,
+    /// Geometric normal (unit, not flipped).
+    pub ng: V3,
+    /// Interpolated shading normal (unit, not flipped).
+    pub ns: V3,
+    pub uv: [f32; 2],
+    pub prim: u32,
+    pub t: f32,
+}
+
+/// The tessellated mesh of one object shape, in object space.
+pub fn shape_mesh(scene: &Scene, shape: &Shape) -> Result<Mesh> {
+    Ok(match shape {
+        Shape::Mesh { path } => {
+            let full = scene.resolve(path);
+            crate::export::load_mesh(&full).map_err(|e| RenderError::Invalid {
+                path: full.clone(),
+                message: e.to_string(),
+            })?
+        }
+        Shape::Sphere { radius } => uv_sphere(*radius, 96, 48),
+        Shape::Cuboid { size } => cuboid(*size),
+        Shape::Quad { size } => quad(*size),
+    })
+}
+
+fn uv_sphere(r: f32, segs: usize, rings: usize) -> Mesh {
+    let mut m = Mesh::default();
+    for j in 0..=rings {
+        let theta = PI * j as f32 / rings as f32;
+        for i in 0..=segs {
+            let phi = 2.0 * PI * i as f32 / segs as f32;
+            let n = [theta.sin() * phi.cos(), theta.cos(), -theta.sin() * phi.sin()];
+            m.positions.push([n[0] * r, n[1] * r, n[2] * r]);
+            m.normals.push(n);
+            m.uvs.push([i as f32 / segs as f32, j as f32 / rings as f32]);
+        }
+    }
+    let row = segs as u32 + 1;
+    for j in 0..rings as u32 {
+        for i in 0..segs as u32 {
+            let a = j * row + i;
+            let b = a + row;
+            if j != 0 {
+                m.indices.push([a, b, a + 1]);
+            }
+            if j != rings as u32 - 1 {
+                m.indices.push([a + 1, b, b + 1]);
+            }
+        }
+    }
+    m
+}
+
+fn cuboid(size: [f32; 3]) -> Mesh {
+    let h = size.map(|s| 0.5 * s);
+    let mut m = Mesh::default();
+    // (normal axis, sign): each face as 4 corners counter-clockwise seen from outside.
+    for axis in 0..3 {
+        for sign in [1.0f32, -1.0] {
+            let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+            let base = m.positions.len() as u32;
+            let corners = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)];
+            for (cu, cv) in corners {
+                let mut p = [0.0; 3];
+                p[axis] = sign * h[axis];
+                p[u] = cu * h[u];
+                p[v] = cv * h[v] * sign;
+                let mut n = [0.0; 3];
+                n[axis] = sign;
+                m.positions.push(p);
+                m.normals.push(n);
+                m.uvs.push([0.5 * (cu + 1.0), 0.5 * (1.0 - cv)]);
+            }
+            m.indices.push([base, base + 1, base + 2]);
+            m.indices.push([base, base + 2, base + 3]);
+        }
+    }
+    m
+}
+
+fn quad(size: [f32; 2]) -> Mesh {
+    let (hx, hy) = (0.5 * size[0], 0.5 * size[1]);
+    Mesh {
+        positions: vec![[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]],
+        normals: vec![[0.0, 0.0, 1.0]; 4],
+        uvs: vec![[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]],
+        indices: vec![[0, 1, 2], [0, 2, 3]],
+    }
+}
+
+fn mat_apply(m: &[[f32; 4]; 4], p: [f32; 3]) -> V3 {
+    V3::new(
+        m[0][0] * p[0] + m[0][1] * p[1] + m[0][2] * p[2] + m[0][3],
+        m[1][0] * p[0] + m[1][1] * p[1] + m[1][2] * p[2] + m[1][3],
+        m[2][0] * p[0] + m[2][1] * p[1] + m[2][2] * p[2] + m[2][3],
+    )
+}
+
+/// Inverse transpose of the upper 3×3 (cofactor matrix; the scale does not matter for normals).
+fn normal_matrix(m: &[[f32; 4]; 4]) -> [[f32; 3]; 3] {
+    let a = |i: usize, j: usize| m[i][j];
+    let mut c = [[0.0; 3]; 3];
+    for (i, row) in c.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            let (i1, i2) = ((i + 1) % 3, (i + 2) % 3);
+            let (j1, j2) = ((j + 1) % 3, (j + 2) % 3);
+            *v = a(i1, j1) * a(i2, j2) - a(i1, j2) * a(i2, j1);
+        }
+    }
+    c
+}
+
+/// The resolved material of an object (textures loaded).
+pub fn resolve_material(scene: &Scene, m: &crate::scene::Material) -> Result<MaterialData> {
+    let load = |p: &Option<std::path::PathBuf>, color: bool| -> Result<Option<Texture>> {
+        match p {
+            None => Ok(None),
+            Some(p) => {
+                let full = scene.resolve(p);
+                Ok(Some(if color {
+                    Texture::load_color(&full)?
+                } else {
+                    Texture::load_scalar(&full)?
+                }))
+            }
+        }
+    };
+    Ok(MaterialData {
+        base: V3::from_arr(m.base_color.rgb()),
+        base_tex: load(&m.base_color_texture, true)?,
+        roughness: m.roughness,
+        roughness_tex: load(&m.roughness_texture, false)?,
+        metallic: m.metallic,
+        metallic_tex: load(&m.metallic_texture, false)?,
+        transmission: m.transmission,
+        ior: m.ior,
+        specular_level: m.specular_ior_level,
+        emission: V3::from_arr(m.emission_color.rgb()) * m.emission_strength,
+    })
+}
+
+impl Geometry {
+    /// Builds world-space triangles and the BVH for every object in the scene.
+    pub fn build(scene: &Scene) -> Result<Geometry> {
+        let mut tris = Vec::new();
+        let mut attrs = Vec::new();
+        let mut materials = Vec::new();
+        for obj in &scene.objects {
+            let mesh = shape_mesh(scene, &obj.shape)?;
+            let mi = materials.len() as u32;
+            materials.push(resolve_material(scene, &obj.material)?);
+            let m = obj.transform.to_matrix();
+            let nm = normal_matrix(&m);
+            let pos: Vec<V3> = mesh.positions.iter().map(|p| mat_apply(&m, *p)).collect();
+            let nrm: Vec<V3> = mesh
+                .normals
+                .iter()
+                .map(|n| {
+                    V3::new(
+                        nm[0][0] * n[0] + nm[0][1] * n[1] + nm[0][2] * n[2],
+                        nm[1][0] * n[0] + nm[1][1] * n[1] + nm[1][2] * n[2],
+                        nm[2][0] * n[0] + nm[2][1] * n[1] + nm[2][2] * n[2],
+                    )
+                    .normalize()
+                })
+                .collect();
+            let nv = pos.len();
+            for (k, ix) in mesh.indices.iter().enumerate() {
+                if ix.iter().any(|&i| i as usize >= nv) {
+                    return Err(RenderError::Options(format!(
+                        "object {:?}: triangle {k} indexes vertex {:?} of {nv}",
+                        obj.name, ix
+                    )));
+                }
+                let [a, b, c] = ix.map(|i| pos[i as usize]);
+                let (e1, e2) = (b - a, c - a);
+                let cr = e1.cross(e2);
+                let area = 0.5 * cr.length();
+                if !(area > 0.0 && area.is_finite()) {
+                    continue; // degenerate triangle: invisible, skip
+                }
+                let ng = cr.normalize();
+                let n = if nrm.len() == nv {
+                    ix.map(|i| nrm[i as usize])
+                } else {
+                    [ng; 3]
+                };
+                let uv = if mesh.uvs.len() == nv {
+                    ix.map(|i| mesh.uvs[i as usize])
+                } else {
+                    [[0.0, 0.0]; 3]
+                };
+                tris.push(Tri { p0: a, e1, e2 });
+                attrs.push(TriAttr {
+                    n,
+                    uv,
+                    ng,
+                    area,
+                    material: mi,
+                    light: u32::MAX,
+                });
+            }
+        }
+        let (bvh, perm) = Bvh::build(&tris);
+        let tris: Vec<Tri> = perm.iter().map(|&i| tris[i as usize]).collect();
+        let attrs: Vec<TriAttr> = perm.iter().map(|&i| attrs[i as usize]).collect();
+        let mut lo = V3::splat(f32::INFINITY);
+        let mut hi = V3::splat(f32::NEG_INFINITY);
+        for t in &tris {
+            for p in [t.p0, t.p0 + t.e1, t.p0 + t.e2] {
+                lo = lo.min(p);
+                hi = hi.max(p);
+            }
+        }
+        if tris.is_empty() {
+            lo = V3::ZERO;
+            hi = V3::ZERO;
+        }
+        Ok(Geometry {
+            tris,
+            attrs,
+            materials,
+            bvh,
+            lo,
+            hi,
+        })
+    }
+
+    /// Closest surface along `ray` in `(tmin, tmax)`.
+    pub fn intersect(&self, ray: &Ray, tmin: f32, tmax: f32) -> Option<SurfaceHit> {
+        let Hit { t, b1, b2, prim } = self.bvh.intersect(&self.tris, ray, tmin, tmax)?;
+        let a = &self.attrs[prim as usize];
+        let b0 = 1.0 - b1 - b2;
+        let tri = &self.tris[prim as usize];
+        let p = tri.p0 + tri.e1 * b1 + tri.e2 * b2;
+        let mut ns = (a.n[0] * b0 + a.n[1] * b1 + a.n[2] * b2).normalize();
+        if !ns.is_finite() || ns.is_zero() {
+            ns = a.ng;
+        }
+        let uv = [
+            a.uv[0][0] * b0 + a.uv[1][0] * b1 + a.uv[2][0] * b2,
+            a.uv[0][1] * b0 + a.uv[1][1] * b1 + a.uv[2][1] * b2,
+        ];
+        Some(SurfaceHit {
+            p,
+            ng: a.ng,
+            ns,
+            uv,
+            prim,
+            t,
+        })
+    }
+
+    pub fn occluded(&self, ray: &Ray, tmin: f32, tmax: f32) -> bool {
+        self.bvh.occluded(&self.tris, ray, tmin, tmax)
+    }
+
+    /// Centre and radius of a sphere bounding the geometry.
+    pub fn bounding_sphere(&self) -> (V3, f32) {
+        let c = (self.lo + self.hi) * 0.5;
+        (c, ((self.hi - self.lo) * 0.5).length().max(1e-3))
+    }
+}

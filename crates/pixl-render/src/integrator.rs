@@ -1,0 +1,287 @@
+//! Unidirectional path tracing with next-event estimation and MIS, writing Cycles' passes.
+//!
+//! Layers (pbrt-style): [`render`] (rows in parallel with rayon) → `render_pixel` (samples of
+//! one pixel) → `trace` (one path). Each `(pixel, sample)` draws from its own random stream
+//! `Rng::for_stream(seed, [pixel, sample])`, so the image is bit-identical for a given seed
+//! whatever the thread count or scheduling.
+//!
+//! Per path vertex: one light is picked by power and sampled (NEE; MIS with the BSDF pdf for
+//! area, world and emissive-triangle lights, none for delta lights), then the BSDF is sampled
+//! and the emission the new ray finds (area lights on the way, the surface hit, or the world)
+//! is MIS-weighted. Russian roulette from the fourth vertex on (survival `min(max β, 0.95)`).
+//!
+//! Bounces follow Cycles' `max_bounces`: with `max_bounces = B`, light is gathered at up to
+//! `B + 1` surface vertices (0 = direct lighting only).
+//!
+//! Pass bookkeeping (see [`crate::film`]): light arriving at the first hit is split between the
+//! diffuse / glossy / transmission passes in proportion to each lobe's share of the BSDF value
+//! (per channel) — for light sampling the lobe evaluations, for the continuing path the lobe
+//! weights of the first sampled direction — and goes to `*Dir` when it comes straight from a
+//! light, to `*Ind` otherwise.
+use crate::bvh::Ray;
+use crate::camera::CameraRays;
+use crate::error::{RenderError, Result};
+use crate::film::{Film, PixelSum};
+use crate::geometry::{Geometry, SurfaceHit};
+use crate::light::Lights;
+use crate::material::{Bsdf, BsdfEval};
+use crate::math::V3;
+use crate::sampling::power_heuristic;
+use crate::scene::Scene;
+use pixl_core::Rng;
+use rayon::prelude::*;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// How to render.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RenderOptions {
+    /// Samples per pixel.
+    pub spp: u32,
+    /// Output width; default the camera's (height follows the aspect ratio when only one is set).
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    pub seed: u64,
+    /// Cycles' `max_bounces` (0 = direct light only).
+    pub max_bounces: u32,
+}
+
+impl Default for RenderOptions {
+    fn default() -> Self {
+        RenderOptions {
+            spp: 16,
+            width: None,
+            height: None,
+            seed: 0,
+            max_bounces: 8,
+        }
+    }
+}
+
+impl RenderOptions {
+    /// The output size for `scene`'s camera.
+    pub fn resolution(&self, scene: &Scene) -> (u32, u32) {
+        let (cw, ch) = (scene.camera.width, scene.camera.height);
+        match (self.width, self.height) {
+            (Some(w), Some(h)) => (w, h),
+            (Some(w), None) => (w, ((w as f64 * ch as f64 / cw as f64).round() as u32).max(1)),
+            (None, Some(h)) => (((h as f64 * cw as f64 / ch as f64).round() as u32).max(1), h),
+            (None, None) => (cw, ch),
+        }
+    }
+}
+
+/// Everything a path needs, built once per render.
+pub struct Renderer {
+    pub geom: Geometry,
+    pub lights: Lights,
+    pub camera: CameraRays,
+    pub width: u32,
+    pub height: u32,
+    pub opts: RenderOptions,
+}
+
+impl Renderer {
+    /// Loads meshes and textures, builds the BVH and the light list.
+    pub fn new(scene: &Scene, opts: &RenderOptions) -> Result<Renderer> {
+        scene.validate()?;
+        let (width, height) = opts.resolution(scene);
+        if width == 0 || height == 0 || (width as usize).saturating_mul(height as usize) > pixl_core::io::MAX_PIXELS {
+            return Err(RenderError::Options(format!(
+                "render size {width}x{height} is empty or too large"
+            )));
+        }
+        if opts.spp == 0 {
+            return Err(RenderError::Options("spp must be at least 1".into()));
+        }
+        let mut geom = Geometry::build(scene)?;
+        let lights = Lights::build(scene, &mut geom)?;
+        let camera = CameraRays::new(&scene.camera, width, height);
+        Ok(Renderer {
+            geom,
+            lights,
+            camera,
+            width,
+            height,
+            opts: opts.clone(),
+        })
+    }
+
+    /// Renders all pixels; `progress(rows_done, rows_total)` is called as rows finish.
+    pub fn render(&self, progress: &(dyn Fn(usize, usize) + Sync)) -> Film {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let done = AtomicUsize::new(0);
+        let rows: Vec<Vec<PixelSum>> = (0..h)
+            .into_par_iter()
+            .map(|y| {
+                let row = (0..w).map(|x| self.render_pixel(x, y)).collect();
+                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+                progress(d, h);
+                row
+            })
+            .collect();
+        let sums: Vec<PixelSum> = rows.into_iter().flatten().collect();
+        Film::from_sums(w, h, self.opts.spp, &sums)
+    }
+
+    /// The sums of all samples of pixel `(x, y)`.
+    pub fn render_pixel(&self, x: usize, y: usize) -> PixelSum {
+        let mut acc = PixelSum::default();
+        let pixel = (y * self.width as usize + x) as u64;
+        for s in 0..self.opts.spp {
+            let mut rng = Rng::for_stream(self.opts.seed, &[pixel, s as u64]);
+            let ray = self.camera.ray(x as f32 + rng.f32(), y as f32 + rng.f32());
+            let sample = self.trace(&ray, &mut rng);
+            acc.add(&sample);
+        }
+        acc
+    }
+
+    fn spawn(hit: &SurfaceHit, ng_side: V3, wi: V3) -> Ray {
+        let eps = 1e-4 * (1.0 + hit.p.x.abs().max(hit.p.y.abs()).max(hit.p.z.abs()));
+        let n = if wi.dot(ng_side) >= 0.0 { ng_side } else { -ng_side };
+        Ray::new(hit.p + n * eps, wi)
+    }
+
+    /// One camera path: its contribution to every pass.
+    fn trace(&self, camera_ray: &Ray, rng: &mut Rng) -> PixelSum {
+        let mut s = PixelSum::default();
+        let geom = &self.geom;
+        let lights = &self.lights;
+        let first = geom.intersect(camera_ray, 0.0, f32::INFINITY);
+        let t_first = first.map(|h| h.t).unwrap_or(f32::INFINITY);
+        lights.area_hits(camera_ray, t_first, |l, _, _| {
+            s.emit += l;
+            s.combined += l;
+        });
+        let Some(mut hit) = first else {
+            if let Some((le, _)) = lights.env_hit(camera_ray.d) {
+                s.env += le;
+                s.combined += le;
+            }
+            return s;
+        };
+        s.depth = self.camera.z_depth(hit.p);
+        s.normal = hit.ns;
+        s.normal_n = 1;
+        let mut wo = -camera_ray.d;
+        let mut mat = &geom.materials[geom.attrs[hit.prim as usize].material as usize];
+        if mat.emission.max_comp() > 0.0 {
+            s.emit += mat.emission;
+            s.combined += mat.emission;
+        }
+        let mut bsdf = Bsdf::new(mat, &hit, wo);
+        s.col = bsdf.colors;
+        // Per-channel share of each lobe in the path throughput after the first bounce.
+        let mut frac = [V3::ZERO; 3];
+        let mut beta = V3::ONE;
+        let max_b = self.opts.max_bounces;
+        let mut depth = 0u32;
+        loop {
+            if depth >= 3 {
+                let q = beta.max_comp().min(0.95);
+                if !(rng.f32() < q) {
+                    break;
+                }
+                beta = beta / q;
+            }
+            // Next-event estimation.
+            if bsdf.has_smooth() && !lights.is_empty() {
+                let (up, u1, u2) = (rng.f32(), rng.f32(), rng.f32());
+                if let Some(ls) = lights.sample(geom, hit.p, up, u1, u2) {
+                    let e: BsdfEval = bsdf.eval(ls.wi);
+                    let f = e.total();
+                    if !f.is_zero() && ls.pdf > 0.0 {
+                        let ray = Self::spawn(&hit, bsdf.ng(), ls.wi);
+                        let tmax = if ls.dist.is_finite() {
+                            ls.dist * (1.0 - 1e-3)
+                        } else {
+                            f32::INFINITY
+                        };
+                        if !geom.occluded(&ray, 0.0, tmax) {
+                            let w = if ls.delta { 1.0 } else { power_heuristic(ls.pdf, e.pdf) };
+                            let scale = ls.li * (w / ls.pdf);
+                            if depth == 0 {
+                                let parts = [e.diffuse, e.glossy, e.transmission];
+                                for k in 0..3 {
+                                    s.dir[k] += parts[k] * scale;
+                                }
+                                s.combined += f * scale;
+                            } else {
+                                let l = beta * f * scale;
+                                add_path_light(&mut s, &frac, l, depth);
+                            }
+                        }
+                    }
+                }
+            }
+            // Continue the path.
+            let (ul, u1, u2) = (rng.f32(), rng.f32(), rng.f32());
+            let Some(bs) = bsdf.sample(ul, u1, u2) else { break };
+            let wt = bs.weight.total();
+            if depth == 0 {
+                frac = [
+                    bs.weight.diffuse.safe_div(wt),
+                    bs.weight.glossy.safe_div(wt),
+                    bs.weight.transmission.safe_div(wt),
+                ];
+            }
+            beta *= wt;
+            if !beta.is_finite() || beta.is_zero() {
+                break;
+            }
+            let ray = Self::spawn(&hit, bsdf.ng(), bs.wi);
+            let next = geom.intersect(&ray, 0.0, f32::INFINITY);
+            let t_next = next.map(|h| h.t).unwrap_or(f32::INFINITY);
+            let mis = |light_pdf: f32| {
+                if bs.delta {
+                    1.0
+                } else {
+                    power_heuristic(bs.pdf, light_pdf)
+                }
+            };
+            lights.area_hits(&ray, t_next, |l, pdf, _| {
+                add_path_light(&mut s, &frac, beta * l * mis(pdf), depth);
+            });
+            let Some(h2) = next else {
+                if let Some((le, pdf)) = lights.env_hit(ray.d) {
+                    add_path_light(&mut s, &frac, beta * le * mis(pdf), depth);
+                }
+                break;
+            };
+            let m2 = &geom.materials[geom.attrs[h2.prim as usize].material as usize];
+            if m2.emission.max_comp() > 0.0 {
+                let cos_l = ray.d.dot(h2.ng).abs();
+                let pdf = lights.tri_pdf(geom, h2.prim, h2.t, cos_l);
+                add_path_light(&mut s, &frac, beta * m2.emission * mis(pdf), depth);
+            }
+            if depth >= max_b {
+                break;
+            }
+            depth += 1;
+            hit = h2;
+            mat = m2;
+            wo = -ray.d;
+            bsdf = Bsdf::new(mat, &hit, wo);
+            if bsdf.is_black() {
+                break;
+            }
+        }
+        s
+    }
+}
+
+/// Adds light `l` (already times throughput and MIS weight) gathered at path vertex `depth`.
+fn add_path_light(s: &mut PixelSum, frac: &[V3; 3], l: V3, depth: u32) {
+    let target = if depth == 0 { &mut s.dir } else { &mut s.ind };
+    for k in 0..3 {
+        target[k] += l * frac[k];
+    }
+    s.combined += l;
+}
+
+/// Renders `scene` into Cycles-equivalent passes. `progress(rows_done, rows_total)` is called
+/// from worker threads as rows finish.
+pub fn render(scene: &Scene, opts: &RenderOptions, progress: &(dyn Fn(usize, usize) + Sync)) -> Result<Film> {
+    let r = Renderer::new(scene, opts)?;
+    Ok(r.render(progress))
+}

@@ -1,0 +1,468 @@
+//! Lights for the tracer, in Cycles' units (see [`crate::scene`]): point, spot, area
+//! (rectangle / disk), sun, the world, and emissive triangles. One light is picked per shading
+//! point in proportion to an estimate of its power; the sample returns the incident radiance
+//! (or, for delta lights, the radiance-equivalent `I/d²` or irradiance) and the pdf including
+//! the pick probability.
+//!
+//! - Point: intensity `I = P·color / 4π`; a non-zero radius jitters the sample point on a disk
+//!   of that radius facing the shading point (soft shadows, same irradiance far away).
+//! - Spot: point intensity masked by `smoothstep(0, 1, (cos θ − cos(size/2)) / ((1 − cos(size/2))·blend))`
+//!   (hard edge for `blend = 0`), not renormalised to the cone.
+//! - Area: one-sided Lambertian, radiance `P·color / (π A)`, emitting along its direction; its
+//!   local X (`size`) is `normalize(d × Y)` (or +X when `d ∥ Y`), local Y is `(−d) × X`.
+//! - Sun: irradiance `strength·color`, directions uniform in its angular cone.
+//! - World: radiance `strength·color` (× texel), sampled uniformly over the sphere.
+//! - Emissive triangles: two-sided, radiance = the material's emission, sampled by area.
+//!
+//! Point, spot and sun are invisible to camera and BSDF rays (delta lights, sampled only by
+//! next-event estimation); area lights, emissive triangles and the world are hit by BSDF rays
+//! and combined with light sampling by MIS (power heuristic). Area lights do not occlude.
+use crate::bvh::Ray;
+use crate::error::Result;
+use crate::geometry::Geometry;
+use crate::math::{Frame, V3};
+use crate::sampling::{concentric_disk, uniform_cone, uniform_sphere, uniform_triangle, Distribution1D};
+use crate::scene::{AreaShape, Light, Scene};
+use crate::texture::Texture;
+use std::f32::consts::PI;
+
+#[derive(Clone, Debug)]
+pub enum LightKind {
+    Point {
+        p: V3,
+        intensity: V3,
+        radius: f32,
+    },
+    Spot {
+        p: V3,
+        dir: V3,
+        intensity: V3,
+        radius: f32,
+        cos_half: f32,
+        smooth: f32,
+    },
+    Area {
+        c: V3,
+        ex: V3,
+        ey: V3,
+        n: V3,
+        disk: bool,
+        radiance: V3,
+        area: f32,
+    },
+    Sun {
+        dir: V3,
+        irradiance: V3,
+        cos_max: f32,
+    },
+    Env,
+    Tri {
+        prim: u32,
+        radiance: V3,
+    },
+}
+
+/// The world: constant radiance or an equirectangular image times a strength.
+#[derive(Clone, Debug)]
+pub struct Environment {
+    pub radiance: V3,
+    pub image: Option<Texture>,
+    pub rotation: f32,
+}
+
+impl Environment {
+    /// Radiance arriving from direction `-d` (i.e. seen looking along `d`).
+    pub fn eval(&self, d: V3) -> V3 {
+        match &self.image {
+            None => self.radiance,
+            Some(tex) => {
+                let (s, c) = (-self.rotation).sin_cos();
+                let d = V3::new(c * d.x + s * d.z, d.y, -s * d.x + c * d.z);
+                let u = 0.5 - (-d.z).atan2(d.x) / (2.0 * PI);
+                let v = 0.5 + d.y.atan2((d.x * d.x + d.z * d.z).sqrt()) / PI;
+                self.radiance * tex.sample(u, 1.0 - v)
+            }
+        }
+    }
+}
+
+/// A light sample at a shading point.
+#[derive(Clone, Copy, Debug)]
+pub struct LightSample {
+    /// Incident radiance (delta lights: `I/d²` or irradiance), before the BSDF.
+    pub li: V3,
+    pub wi: V3,
+    /// Distance to the sampled point (`INFINITY` for sun and world).
+    pub dist: f32,
+    /// Solid-angle pdf including the pick probability (delta lights: the pick probability).
+    pub pdf: f32,
+    pub delta: bool,
+}
+
+pub struct Lights {
+    pub lights: Vec<LightKind>,
+    dist: Distribution1D,
+    pub env: Option<Environment>,
+    env_index: Option<usize>,
+    area_indices: Vec<usize>,
+}
+
+fn smoothstep(x: f32) -> f32 {
+    let x = x.clamp(0.0, 1.0);
+    x * x * (3.0 - 2.0 * x)
+}
+
+/// The local X axis of an area light travelling along `d` (see module docs).
+pub fn area_axes(d: V3) -> (V3, V3) {
+    let x = d.cross(V3::new(0.0, 1.0, 0.0));
+    let x = if x.length() < 1e-6 {
+        V3::new(1.0, 0.0, 0.0)
+    } else {
+        x.normalize()
+    };
+    let y = (-d).cross(x).normalize();
+    (x, y)
+}
+
+impl Lights {
+    /// Collects the scene's lights and marks emissive triangles in `geom`.
+    pub fn build(scene: &Scene, geom: &mut Geometry) -> Result<Lights> {
+        let (_, radius) = geom.bounding_sphere();
+        let mut lights = Vec::new();
+        let mut power = Vec::new();
+        let mut area_indices = Vec::new();
+        for l in &scene.lights {
+            let color = V3::from_arr(l.color().rgb());
+            let dir = l
+                .direction()
+                .map(V3::from_arr)
+                .unwrap_or(V3::new(0.0, -1.0, 0.0))
+                .normalize();
+            match l {
+                Light::Point {
+                    position,
+                    power: p,
+                    radius,
+                    ..
+                } => {
+                    let intensity = color * (*p / (4.0 * PI));
+                    lights.push(LightKind::Point {
+                        p: V3::from_arr(*position),
+                        intensity,
+                        radius: *radius,
+                    });
+                    power.push(p * color.luminance());
+                }
+                Light::Spot {
+                    position,
+                    power: p,
+                    spot_size_deg,
+                    blend,
+                    radius,
+                    ..
+                } => {
+                    let intensity = color * (*p / (4.0 * PI));
+                    let cos_half = (0.5 * spot_size_deg.to_radians()).cos();
+                    let smooth = (1.0 - cos_half) * blend;
+                    lights.push(LightKind::Spot {
+                        p: V3::from_arr(*position),
+                        dir,
+                        intensity,
+                        radius: *radius,
+                        cos_half,
+                        smooth,
+                    });
+                    power.push(p * color.luminance());
+                }
+                Light::Area {
+                    position,
+                    shape,
+                    power: p,
+                    ..
+                } => {
+                    let (sx, sy) = l.area_size().unwrap_or((1.0, 1.0));
+                    let disk = matches!(shape, AreaShape::Disk | AreaShape::Ellipse);
+                    let area = if disk { PI * 0.25 * sx * sy } else { sx * sy };
+                    let (x, y) = area_axes(dir);
+                    area_indices.push(lights.len());
+                    lights.push(LightKind::Area {
+                        c: V3::from_arr(*position),
+                        ex: x * (0.5 * sx),
+                        ey: y * (0.5 * sy),
+                        n: dir,
+                        disk,
+                        radiance: color * (*p / (PI * area)),
+                        area,
+                    });
+                    power.push(p * color.luminance());
+                }
+                Light::Sun {
+                    strength, angle_deg, ..
+                } => {
+                    let cos_max = (0.5 * angle_deg.to_radians()).cos().min(1.0 - 1e-7);
+                    lights.push(LightKind::Sun {
+                        dir,
+                        irradiance: color * *strength,
+                        cos_max,
+                    });
+                    power.push(strength * color.luminance() * PI * radius * radius);
+                }
+            }
+        }
+        let mut env = None;
+        let mut env_index = None;
+        if let Some(w) = &scene.world {
+            let image = match &w.image {
+                Some(p) => Some(Texture::load_color(&scene.resolve(p))?),
+                None => None,
+            };
+            let radiance = match image {
+                Some(_) => V3::splat(w.strength),
+                None => V3::from_arr(w.color.rgb()) * w.strength,
+            };
+            let mean = match &image {
+                Some(t) => {
+                    let img = t.image();
+                    let n = (img.width * img.height).max(1) as f32;
+                    img.data
+                        .chunks_exact(3)
+                        .fold(V3::ZERO, |a, p| a + V3::new(p[0], p[1], p[2]))
+                        / n
+                }
+                None => V3::ONE,
+            };
+            let e = Environment {
+                radiance,
+                image,
+                rotation: w.rotation_deg.to_radians(),
+            };
+            let lum = (radiance * mean).luminance();
+            if lum > 0.0 {
+                env_index = Some(lights.len());
+                lights.push(LightKind::Env);
+                power.push(2.0 * PI * PI * radius * radius * lum);
+            }
+            env = Some(e);
+        }
+        for (prim, a) in geom.attrs.iter_mut().enumerate() {
+            let em = geom.materials[a.material as usize].emission;
+            if em.max_comp() > 0.0 {
+                a.light = lights.len() as u32;
+                lights.push(LightKind::Tri {
+                    prim: prim as u32,
+                    radiance: em,
+                });
+                power.push(2.0 * PI * a.area * em.luminance());
+            }
+        }
+        let dist = Distribution1D::new(&power);
+        Ok(Lights {
+            lights,
+            dist,
+            env,
+            env_index,
+            area_indices,
+        })
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.dist.is_empty()
+    }
+
+    /// Probability of picking light `i`.
+    pub fn pick_pmf(&self, i: usize) -> f32 {
+        self.dist.pmf(i)
+    }
+
+    /// Samples one light for the shading point `p`.
+    pub fn sample(&self, geom: &Geometry, p: V3, u_pick: f32, u1: f32, u2: f32) -> Option<LightSample> {
+        if self.dist.is_empty() {
+            return None;
+        }
+        let (i, _) = self.dist.sample(u_pick);
+        let pick = self.dist.pmf(i);
+        if pick <= 0.0 {
+            return None;
+        }
+        let towards = |q: V3| {
+            let d = q - p;
+            let dist = d.length();
+            (d / dist, dist)
+        };
+        match &self.lights[i] {
+            LightKind::Point {
+                p: lp,
+                intensity,
+                radius,
+            }
+            | LightKind::Spot {
+                p: lp,
+                intensity,
+                radius,
+                ..
+            } => {
+                let mut q = *lp;
+                if *radius > 0.0 {
+                    let f = Frame::new((p - *lp).normalize());
+                    let (dx, dy) = concentric_disk(u1, u2);
+                    q = q + f.t * (dx * radius) + f.b * (dy * radius);
+                }
+                let (wi, dist) = towards(q);
+                if !(dist > 0.0) {
+                    return None;
+                }
+                let mut li = *intensity / (dist * dist);
+                if let LightKind::Spot {
+                    dir, cos_half, smooth, ..
+                } = &self.lights[i]
+                {
+                    let cos_a = dir.dot((p - *lp).normalize());
+                    let mask = if *smooth > 0.0 {
+                        smoothstep((cos_a - cos_half) / smooth)
+                    } else if cos_a > *cos_half {
+                        1.0
+                    } else {
+                        0.0
+                    };
+                    if mask <= 0.0 {
+                        return None;
+                    }
+                    li *= mask;
+                }
+                Some(LightSample {
+                    li,
+                    wi,
+                    dist,
+                    pdf: pick,
+                    delta: true,
+                })
+            }
+            LightKind::Area {
+                c,
+                ex,
+                ey,
+                n,
+                disk,
+                radiance,
+                area,
+            } => {
+                let (a, b) = if *disk {
+                    concentric_disk(u1, u2)
+                } else {
+                    (2.0 * u1 - 1.0, 2.0 * u2 - 1.0)
+                };
+                let q = *c + *ex * a + *ey * b;
+                let (wi, dist) = towards(q);
+                let cos_l = -wi.dot(*n);
+                if !(cos_l > 0.0 && dist > 0.0) {
+                    return None;
+                }
+                Some(LightSample {
+                    li: *radiance,
+                    wi,
+                    dist,
+                    pdf: pick * dist * dist / (cos_l * area),
+                    delta: false,
+                })
+            }
+            LightKind::Sun {
+                dir,
+                irradiance,
+                cos_max,
+            } => {
+                let f = Frame::new(-*dir);
+                let wi = f.to_world(uniform_cone(u1, u2, *cos_max));
+                Some(LightSample {
+                    li: *irradiance,
+                    wi,
+                    dist: f32::INFINITY,
+                    pdf: pick,
+                    delta: true,
+                })
+            }
+            LightKind::Env => {
+                let env = self.env.as_ref()?;
+                let wi = uniform_sphere(u1, u2);
+                Some(LightSample {
+                    li: env.eval(wi),
+                    wi,
+                    dist: f32::INFINITY,
+                    pdf: pick / (4.0 * PI),
+                    delta: false,
+                })
+            }
+            LightKind::Tri { prim, radiance } => {
+                let tri = &geom.tris[*prim as usize];
+                let (b1, b2) = uniform_triangle(u1, u2);
+                let q = tri.p0 + tri.e1 * b1 + tri.e2 * b2;
+                let a = &geom.attrs[*prim as usize];
+                let (wi, dist) = towards(q);
+                let cos_l = wi.dot(a.ng).abs();
+                if !(cos_l > 0.0 && dist > 0.0) {
+                    return None;
+                }
+                Some(LightSample {
+                    li: *radiance,
+                    wi,
+                    dist,
+                    pdf: pick * dist * dist / (cos_l * a.area),
+                    delta: false,
+                })
+            }
+        }
+    }
+
+    /// The world's radiance along `d` and the light-sampling pdf of that direction.
+    pub fn env_hit(&self, d: V3) -> Option<(V3, f32)> {
+        let env = self.env.as_ref()?;
+        let pdf = self.env_index.map(|i| self.dist.pmf(i) / (4.0 * PI)).unwrap_or(0.0);
+        Some((env.eval(d), pdf))
+    }
+
+    /// Light-sampling pdf (solid angle) of an emissive triangle hit at distance `t` with
+    /// `|cos|` between the ray and its normal.
+    pub fn tri_pdf(&self, geom: &Geometry, prim: u32, t: f32, cos_l: f32) -> f32 {
+        let a = &geom.attrs[prim as usize];
+        if a.light == u32::MAX || cos_l <= 0.0 {
+            return 0.0;
+        }
+        self.dist.pmf(a.light as usize) * t * t / (cos_l * a.area)
+    }
+
+    /// Area lights hit by `ray` before `tmax`: calls `f(radiance, light_pdf, t)` for each.
+    pub fn area_hits(&self, ray: &Ray, tmax: f32, mut f: impl FnMut(V3, f32, f32)) {
+        for &i in &self.area_indices {
+            if let LightKind::Area {
+                c,
+                ex,
+                ey,
+                n,
+                disk,
+                radiance,
+                area,
+            } = &self.lights[i]
+            {
+                let denom = ray.d.dot(*n);
+                if denom >= 0.0 {
+                    continue; // back side or parallel: one-sided emitter
+                }
+                let t = (*c - ray.o).dot(*n) / denom;
+                if !(t > 1e-5 && t < tmax) {
+                    continue;
+                }
+                let q = ray.o + ray.d * t - *c;
+                let a = q.dot(*ex) / ex.dot(*ex);
+                let b = q.dot(*ey) / ey.dot(*ey);
+                let inside = if *disk {
+                    a * a + b * b <= 1.0
+                } else {
+                    a.abs() <= 1.0 && b.abs() <= 1.0
+                };
+                if inside {
+                    let pdf = self.dist.pmf(i) * t * t / (-denom * area);
+                    f(*radiance, pdf, t);
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,193 @@
+//! A small `f32` 3-vector for the renderer ([`V3`]) and an orthonormal frame.
+use std::ops::{Add, AddAssign, Div, Index, Mul, MulAssign, Neg, Sub};
+
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct V3 {
+    pub x: f32,
+    pub y: f32,
+    pub z: f32,
+}
+
+impl V3 {
+    pub const ZERO: V3 = V3 { x: 0.0, y: 0.0, z: 0.0 };
+    pub const ONE: V3 = V3 { x: 1.0, y: 1.0, z: 1.0 };
+
+    #[inline]
+    pub const fn new(x: f32, y: f32, z: f32) -> Self {
+        V3 { x, y, z }
+    }
+    #[inline]
+    pub fn splat(v: f32) -> Self {
+        V3 { x: v, y: v, z: v }
+    }
+    #[inline]
+    pub fn from_arr(a: [f32; 3]) -> Self {
+        V3 {
+            x: a[0],
+            y: a[1],
+            z: a[2],
+        }
+    }
+    #[inline]
+    pub fn to_arr(self) -> [f32; 3] {
+        [self.x, self.y, self.z]
+    }
+    #[inline]
+    pub fn dot(self, o: V3) -> f32 {
+        self.x * o.x + self.y * o.y + self.z * o.z
+    }
+    #[inline]
+    pub fn cross(self, o: V3) -> V3 {
+        V3::new(
+            self.y * o.z - self.z * o.y,
+            self.z * o.x - self.x * o.z,
+            self.x * o.y - self.y * o.x,
+        )
+    }
+    #[inline]
+    pub fn length(self) -> f32 {
+        self.dot(self).sqrt()
+    }
+    #[inline]
+    pub fn normalize(self) -> V3 {
+        let l = self.length();
+        if l > 0.0 {
+            self * (1.0 / l)
+        } else {
+            self
+        }
+    }
+    #[inline]
+    pub fn min(self, o: V3) -> V3 {
+        V3::new(self.x.min(o.x), self.y.min(o.y), self.z.min(o.z))
+    }
+    #[inline]
+    pub fn max(self, o: V3) -> V3 {
+        V3::new(self.x.max(o.x), self.y.max(o.y), self.z.max(o.z))
+    }
+    #[inline]
+    pub fn max_comp(self) -> f32 {
+        self.x.max(self.y).max(self.z)
+    }
+    #[inline]
+    pub fn luminance(self) -> f32 {
+        0.2126 * self.x + 0.7152 * self.y + 0.0722 * self.z
+    }
+    #[inline]
+    pub fn is_zero(self) -> bool {
+        self.x == 0.0 && self.y == 0.0 && self.z == 0.0
+    }
+    #[inline]
+    pub fn is_finite(self) -> bool {
+        self.x.is_finite() && self.y.is_finite() && self.z.is_finite()
+    }
+    #[inline]
+    pub fn lerp(a: V3, b: V3, t: f32) -> V3 {
+        a * (1.0 - t) + b * t
+    }
+    /// Component-wise `a / b`, 0 where `b == 0`.
+    #[inline]
+    pub fn safe_div(self, b: V3) -> V3 {
+        let d = |a: f32, b: f32| if b != 0.0 { a / b } else { 0.0 };
+        V3::new(d(self.x, b.x), d(self.y, b.y), d(self.z, b.z))
+    }
+}
+
+impl Add for V3 {
+    type Output = V3;
+    #[inline]
+    fn add(self, o: V3) -> V3 {
+        V3::new(self.x + o.x, self.y + o.y, self.z + o.z)
+    }
+}
+impl AddAssign for V3 {
+    #[inline]
+    fn add_assign(&mut self, o: V3) {
+        *self = *self + o;
+    }
+}
+impl Sub for V3 {
+    type Output = V3;
+    #[inline]
+    fn sub(self, o: V3) -> V3 {
+        V3::new(self.x - o.x, self.y - o.y, self.z - o.z)
+    }
+}
+impl Mul<f32> for V3 {
+    type Output = V3;
+    #[inline]
+    fn mul(self, s: f32) -> V3 {
+        V3::new(self.x * s, self.y * s, self.z * s)
+    }
+}
+impl Mul<V3> for V3 {
+    type Output = V3;
+    #[inline]
+    fn mul(self, o: V3) -> V3 {
+        V3::new(self.x * o.x, self.y * o.y, self.z * o.z)
+    }
+}
+impl MulAssign<V3> for V3 {
+    #[inline]
+    fn mul_assign(&mut self, o: V3) {
+        *self = *self * o;
+    }
+}
+impl MulAssign<f32> for V3 {
+    #[inline]
+    fn mul_assign(&mut self, s: f32) {
+        *self = *self * s;
+    }
+}
+impl Div<f32> for V3 {
+    type Output = V3;
+    #[inline]
+    fn div(self, s: f32) -> V3 {
+        self * (1.0 / s)
+    }
+}
+impl Neg for V3 {
+    type Output = V3;
+    #[inline]
+    fn neg(self) -> V3 {
+        V3::new(-self.x, -self.y, -self.z)
+    }
+}
+impl Index<usize> for V3 {
+    type Output = f32;
+    #[inline]
+    fn index(&self, i: usize) -> &f32 {
+        match i {
+            0 => &self.x,
+            1 => &self.y,
+            _ => &self.z,
+        }
+    }
+}
+
+/// An orthonormal frame around a unit normal `n` (Duff et al. 2017 branchless construction).
+#[derive(Clone, Copy, Debug)]
+pub struct Frame {
+    pub t: V3,
+    pub b: V3,
+    pub n: V3,
+}
+
+impl Frame {
+    pub fn new(n: V3) -> Self {
+        let sign = 1.0f32.copysign(n.z);
+        let a = -1.0 / (sign + n.z);
+        let b = n.x * n.y * a;
+        let t = V3::new(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x);
+        let bb = V3::new(b, sign + n.y * n.y * a, -n.y);
+        Frame { t, b: bb, n }
+    }
+    #[inline]
+    pub fn to_local(&self, v: V3) -> V3 {
+        V3::new(v.dot(self.t), v.dot(self.b), v.dot(self.n))
+    }
+    #[inline]
+    pub fn to_world(&self, v: V3) -> V3 {
+        self.t * v.x + self.b * v.y + self.n * v.z
+    }
+}
