@@ -7,3 +7,6 @@ pub use timing::{time_runs, Timing, DEFAULT_RUNS, DEFAULT_WARMUPS};
 pub mod metrics;
 
 pub use metrics::{psnr, scale_correct, ssim, MetricError};
+pub mod lpips;
+
+pub use lpips::{Lpips, LpipsError, LpipsNet};
