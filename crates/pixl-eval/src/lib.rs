@@ -1,12 +1,25 @@
-//! `pixl-eval`: the evaluation of paper §4.1 — PSNR / SSIM / LPIPS after a per-channel
-//! least-squares scale correction, the timing protocol (2 warm-ups, 5 timed runs), baselines and
-//! report tables.
+//! `pixl-eval`: the evaluation of paper §4.1 — PSNR / SSIM / LPIPS after a per-image, per-channel
+//! least-squares scale correction, at native target resolution; the timing protocol (2 warm-ups,
+//! 5 timed runs, forward pass only); the identity and compose baselines; report tables.
+//!
+//! - [`timing`]: [`time_runs`], [`Timing`].
+//! - [`metrics`]: [`scale_correct`], [`psnr`], [`ssim`] (pure functions on [`pixl_core::Image`]).
+//! - [`lpips`]: LPIPS v0.1 ([`Lpips`]) over [`pixl_nn::backbones`].
+//! - [`baselines`]: the [`Method`] trait, [`Identity`], [`Compose`], [`ModelMethod`].
+//! - [`run`]: pair lists and [`run_eval`].
+//! - [`report`]: `results.md` / `results.json` / `per_pair.csv`.
+pub mod baselines;
+pub mod error;
+pub mod lpips;
+pub mod metrics;
+pub mod report;
+pub mod run;
 pub mod timing;
 
-pub use timing::{time_runs, Timing, DEFAULT_RUNS, DEFAULT_WARMUPS};
-pub mod metrics;
-
-pub use metrics::{psnr, scale_correct, ssim, MetricError};
-pub mod lpips;
-
+pub use baselines::{compose_baseline, parse_baselines, Compose, Identity, Method, ModelMethod};
+pub use error::{EvalError, Result};
 pub use lpips::{Lpips, LpipsError, LpipsNet};
+pub use metrics::{psnr, scale_correct, ssim, MetricError};
+pub use report::write_reports;
+pub use run::{default_pairs, read_pairs, run_eval, EvalOptions, EvalReport, MethodSummary, Pair, PairScore};
+pub use timing::{time_runs, Timing, DEFAULT_RUNS, DEFAULT_WARMUPS};

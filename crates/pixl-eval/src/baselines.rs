@@ -1,0 +1,223 @@
+//! The methods `pixl eval` scores, behind one trait: the two reference baselines and the network.
+//!
+//! - [`Identity`]: the prediction is the source photograph itself (what "no relighting" scores).
+//! - [`Compose`]: the prediction is the target intrinsics recomposed, `A ⊙ S + R` of C_T (paper
+//!   eq. 1), tonemapped like the targets: targets are sRGB in [0, 1] (PNG/JPEG as stored, EXR clipped
+//!   to [0, 1] and sRGB-encoded by `pixl_train::data::load_image`), so the linear recomposition is
+//!   clipped to [0, 1] and sRGB-encoded ([`pixl_core::image::linear_to_srgb`]). This is what the
+//!   conditioning alone explains, without the source.
+//! - [`ModelMethod`]: a PIXLRelight checkpoint, `Î_T = f_θ(I_S, C_T)` (paper §3.2).
+use crate::error::{EvalError, Result};
+use crate::timing::{time_runs, Timing};
+use candle_core::{DType, Device, Tensor};
+use pixl_core::image::linear_to_srgb;
+use pixl_core::Image;
+use pixl_intrinsics::ct::Ct;
+use pixl_model::PixlRelight;
+
+/// A relighting method under evaluation.
+pub trait Method {
+    /// Row label in the tables ("Identity (source)", "Ours", …).
+    fn name(&self) -> &str;
+    /// The target-lighting cue it consumes (the "Lighting cue" column of Table 1).
+    fn cue(&self) -> &str;
+    /// Whether [`Method::predict`] reads C_T (if no method does, intrinsics are never loaded).
+    fn needs_ct(&self) -> bool;
+    /// The prediction for the target, 3-channel sRGB in [0, 1], the size of `source`.
+    fn predict(&self, source: &Image, ct: Option<&Ct>) -> Result<Image>;
+    /// The paper's timing protocol on one input: forward pass only (inputs prepared beforehand),
+    /// `warmups` untimed then `runs` timed runs.
+    fn time(&self, source: &Image, ct: Option<&Ct>, warmups: usize, runs: usize) -> Result<Timing> {
+        time_runs(warmups, runs, || self.predict(source, ct).map(|_| ()))
+    }
+    /// "cpu f32", "cuda:0 bf16": where and how it runs, printed with its timing.
+    fn device_desc(&self) -> String {
+        "cpu f32".into()
+    }
+}
+
+/// The source photograph as the prediction.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Identity;
+
+impl Method for Identity {
+    fn name(&self) -> &str {
+        "Identity (source)"
+    }
+    fn cue(&self) -> &str {
+        "none"
+    }
+    fn needs_ct(&self) -> bool {
+        false
+    }
+    fn predict(&self, source: &Image, _ct: Option<&Ct>) -> Result<Image> {
+        Ok(source.clone())
+    }
+}
+
+/// `linear_to_srgb(clip(A ⊙ S + R, 0, 1))` of C_T (see the module docs).
+pub fn compose_baseline(ct: &Ct) -> Image {
+    ct.recompose().map(|v| linear_to_srgb(v.clamp(0.0, 1.0)))
+}
+
+/// The recomposed target intrinsics as the prediction ([`compose_baseline`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Compose;
+
+impl Method for Compose {
+    fn name(&self) -> &str {
+        "Compose (A⊙S+R of C_T)"
+    }
+    fn cue(&self) -> &str {
+        "Full intrinsics"
+    }
+    fn needs_ct(&self) -> bool {
+        true
+    }
+    fn predict(&self, _source: &Image, ct: Option<&Ct>) -> Result<Image> {
+        let ct = ct.ok_or_else(|| EvalError::Method {
+            method: self.name().into(),
+            reason: "needs C_T".into(),
+        })?;
+        Ok(compose_baseline(ct))
+    }
+}
+
+/// Parses a `--baselines` list (`identity,compose`; empty entries ignored).
+pub fn parse_baselines(list: &str) -> Result<Vec<Box<dyn Method>>> {
+    let mut out: Vec<Box<dyn Method>> = Vec::new();
+    for name in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+        match name {
+            "identity" => out.push(Box::new(Identity)),
+            "compose" => out.push(Box::new(Compose)),
+            other => return Err(EvalError::UnknownBaseline(other.to_string())),
+        }
+    }
+    Ok(out)
+}
+
+/// A PIXLRelight network as a method.
+pub struct ModelMethod {
+    pub label: String,
+    pub model: PixlRelight,
+    pub device: Device,
+}
+
+impl ModelMethod {
+    fn inputs(&self, source: &Image, ct: Option<&Ct>) -> Result<(Tensor, Tensor)> {
+        let err = |reason: String| EvalError::Method {
+            method: self.label.clone(),
+            reason,
+        };
+        let ct = ct.ok_or_else(|| err("needs C_T".into()))?;
+        if source.channels != 3 || (ct.width(), ct.height()) != (source.width, source.height) {
+            return Err(err(format!(
+                "source is {}x{}x{} but C_T is {}x{}",
+                source.width,
+                source.height,
+                source.channels,
+                ct.width(),
+                ct.height()
+            )));
+        }
+        let (w, h) = (source.width, source.height);
+        let src = Tensor::from_vec(source.to_chw(), (1, 3, h, w), &self.device).map_err(|e| err(e.to_string()))?;
+        let ct = Tensor::from_vec(ct.to_chw(), (1, 9, h, w), &self.device).map_err(|e| err(e.to_string()))?;
+        Ok((src, ct))
+    }
+
+    fn err(&self, e: candle_core::Error) -> EvalError {
+        EvalError::Method {
+            method: self.label.clone(),
+            reason: e.to_string(),
+        }
+    }
+}
+
+impl Method for ModelMethod {
+    fn name(&self) -> &str {
+        &self.label
+    }
+    fn cue(&self) -> &str {
+        "Full intrinsics"
+    }
+    fn needs_ct(&self) -> bool {
+        true
+    }
+    fn predict(&self, source: &Image, ct: Option<&Ct>) -> Result<Image> {
+        let (src, ct) = self.inputs(source, ct)?;
+        let out = self.model.forward(&src, &ct).map_err(|e| self.err(e))?;
+        let chw = out
+            .squeeze(0)
+            .and_then(|t| t.to_dtype(DType::F32))
+            .and_then(|t| t.flatten_all())
+            .and_then(|t| t.to_vec1::<f32>())
+            .map_err(|e| self.err(e))?;
+        Ok(Image::from_chw(source.width, source.height, 3, &chw)?)
+    }
+    /// Times `model.forward` only: the input tensors are built once, outside the timed region,
+    /// and the device is synchronised at the end of every run.
+    fn time(&self, source: &Image, ct: Option<&Ct>, warmups: usize, runs: usize) -> Result<Timing> {
+        let (src, ct) = self.inputs(source, ct)?;
+        time_runs(warmups, runs, || {
+            let out = self.model.forward(&src, &ct)?;
+            self.device.synchronize()?;
+            drop(out);
+            Ok::<(), candle_core::Error>(())
+        })
+        .map_err(|e| self.err(e))
+    }
+    fn device_desc(&self) -> String {
+        let dev = match &self.device {
+            Device::Cpu => "cpu".to_string(),
+            other => format!("{:?}", other.location()),
+        };
+        format!("{dev} {:?}", self.model.dtype()).to_lowercase()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn compose_is_clipped_srgb_of_recomposition() {
+        let a = Image::from_fn(2, 2, 3, |x, _, c| [0.5, 0.8, 1.0][c] * (x as f32 + 1.0) / 2.0);
+        let s = Image::from_fn(2, 2, 3, |_, y, _| 0.5 + y as f32);
+        let r = Image::from_fn(2, 2, 3, |_, _, c| 0.05 * c as f32);
+        let ct = Ct::new(a.clone(), s.clone(), r.clone()).unwrap();
+        let out = compose_baseline(&ct);
+        for y in 0..2 {
+            for x in 0..2 {
+                for c in 0..3 {
+                    let lin = (a.get(x, y, c) * s.get(x, y, c) + r.get(x, y, c)) as f64;
+                    let lin = lin.clamp(0.0, 1.0);
+                    // sRGB OETF written out here independently.
+                    let want = if lin <= 0.0031308 {
+                        12.92 * lin
+                    } else {
+                        1.055 * lin.powf(1.0 / 2.4) - 0.055
+                    };
+                    assert!((out.get(x, y, c) as f64 - want).abs() < 1e-5, "({x},{y},{c})");
+                }
+            }
+        }
+        // Values above 1 in linear are white, not overflow.
+        assert!((out.get(1, 1, 2) - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn baseline_list_parses_and_rejects() {
+        let m = parse_baselines("identity, compose").unwrap();
+        assert_eq!(m.iter().map(|m| m.needs_ct()).collect::<Vec<_>>(), vec![false, true]);
+        assert!(matches!(parse_baselines("identity,magic"), Err(EvalError::UnknownBaseline(n)) if n == "magic"));
+        assert!(parse_baselines("").unwrap().is_empty());
+    }
+
+    #[test]
+    fn identity_returns_source() {
+        let img = Image::from_fn(3, 2, 3, |x, y, c| (x + y + c) as f32 / 10.0);
+        assert_eq!(Identity.predict(&img, None).unwrap(), img);
+        assert!(Compose.predict(&img, None).is_err());
+    }
+}

@@ -1,0 +1,35 @@
+//! Typed errors of `pixl-eval`. Every variant names the file, pair or method it is about.
+use std::path::PathBuf;
+
+pub type Result<T, E = EvalError> = std::result::Result<T, E>;
+
+#[derive(Debug, thiserror::Error)]
+pub enum EvalError {
+    #[error(transparent)]
+    Metric(#[from] crate::metrics::MetricError),
+    #[error("{path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+    #[error(transparent)]
+    Core(#[from] pixl_core::CoreError),
+    #[error(transparent)]
+    Data(#[from] pixl_train::TrainError),
+    #[error(transparent)]
+    Checkpoint(#[from] pixl_model::CheckpointError),
+    #[error(transparent)]
+    Lpips(#[from] crate::lpips::LpipsError),
+    #[error("{path}, line {line}: {reason}")]
+    Pairs { path: PathBuf, line: usize, reason: String },
+    #[error("pair {scene}/{source_name} -> {target}: {reason}")]
+    Pair {
+        scene: String,
+        source_name: String,
+        target: String,
+        reason: String,
+    },
+    #[error("method {method}: {reason}")]
+    Method { method: String, reason: String },
+    #[error("unknown baseline {0:?} (expected identity or compose)")]
+    UnknownBaseline(String),
+    #[error("nothing to evaluate: {0}")]
+    Empty(String),
+}
