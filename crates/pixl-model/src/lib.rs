@@ -1,1 +1,22 @@
-//! pixl-model
+//! `pixl-model`: the PIXLRelight network (paper §3.2–3.3) on candle, its configuration and its
+//! checkpoints.
+//!
+//! One file per paragraph of §3.2: [`vit`] (source encoder), [`convnext`] (intrinsics
+//! encoder), [`fusion`] (per-location fusion), [`trunk`] (self-attention trunk with registers
+//! and 2D RoPE), [`dpt`] (DPT head), [`modulation`] (gain/bias output, Eq. 4). [`model`]
+//! assembles them; [`config`] holds the presets; [`checkpoint`] builds, saves and loads weights
+//! (safetensors, PyTorch-style names, config in the metadata — see the crate README).
+pub mod checkpoint;
+pub mod config;
+pub mod convnext;
+pub mod dpt;
+pub mod fusion;
+mod layers;
+pub mod model;
+pub mod modulation;
+pub mod trunk;
+pub mod vit;
+
+pub use checkpoint::{build_trainable, load, load_into_varmap, read_config, save, save_tensors, CheckpointError};
+pub use config::{Config, ConfigError};
+pub use model::PixlRelight;

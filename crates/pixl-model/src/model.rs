@@ -1,0 +1,110 @@
+//! [`PixlRelight`] (paper §3.2, Fig. 2): `Î_T = f_θ(I_S, C_T)`.
+//!
+//! `forward(src, ct)`: `src` `(B, 3, H, W)` in `[0, 1]`, `ct` `(B, 9, H, W)` = `[A_T; S_T; R_T]`,
+//! any `H, W ≥ 1` (aspect 1:3 to 3:1 and beyond); returns `(B, 3, H, W)` f32 in `[0, 1]`.
+//!
+//! Pipeline: pad both inputs on the bottom and right to multiples of 16 by **replicating the
+//! edge** (reflection is undefined for a 1-pixel image; replication never invents new values),
+//! `src_encoder` (ViT) and `cond_encoder` (ConvNeXt) → per-location `fuse` → `trunk` (registers,
+//! 2D RoPE) → four readouts → `head` (DPT) → `modulation` (1×1 conv → gain, bias), cropped back
+//! to `(H, W)` and applied to the unpadded source in f32.
+//!
+//! Inputs are cast to the weights' dtype (f32 or bf16) for the network itself.
+use crate::config::{Config, PATCH};
+use crate::convnext::ConvNextEncoder;
+use crate::dpt::DptHead;
+use crate::fusion::Fusion;
+use crate::modulation::Modulation;
+use crate::trunk::Trunk;
+use crate::vit::VitEncoder;
+use candle_core::{DType, Result, Tensor};
+use candle_nn::VarBuilder;
+
+/// The PIXLRelight network. Field names are the checkpoint's top-level prefixes.
+#[derive(Clone, Debug)]
+pub struct PixlRelight {
+    src_encoder: VitEncoder,
+    cond_encoder: ConvNextEncoder,
+    fuse: Fusion,
+    trunk: Trunk,
+    head: DptHead,
+    modulation: Modulation,
+    cfg: Config,
+    dtype: DType,
+}
+
+/// Pads `(B, C, H, W)` on the bottom/right to `(ph, pw)` by edge replication.
+fn pad_replicate(xs: &Tensor, ph: usize, pw: usize) -> Result<Tensor> {
+    let (_b, _c, h, w) = xs.dims4()?;
+    let xs = if ph > h {
+        xs.pad_with_same(2, 0, ph - h)?
+    } else {
+        xs.clone()
+    };
+    if pw > w {
+        xs.pad_with_same(3, 0, pw - w)
+    } else {
+        Ok(xs)
+    }
+}
+
+impl PixlRelight {
+    /// Builds the network from `vb` (a `VarMap` for training, loaded tensors for inference).
+    /// The weights' dtype is `vb.dtype()`. Validates `cfg` first.
+    pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Self> {
+        cfg.validate().map_err(candle_core::Error::wrap)?;
+        Ok(Self {
+            src_encoder: VitEncoder::new(cfg, vb.pp("src_encoder"))?,
+            cond_encoder: ConvNextEncoder::new(cfg, vb.pp("cond_encoder"))?,
+            fuse: Fusion::new(cfg, vb.pp("fuse"))?,
+            trunk: Trunk::new(cfg, vb.pp("trunk"))?,
+            head: DptHead::new(cfg, vb.pp("head"))?,
+            modulation: Modulation::new(cfg.head.hidden, vb.pp("modulation"))?,
+            cfg: cfg.clone(),
+            dtype: vb.dtype(),
+        })
+    }
+
+    pub fn config(&self) -> &Config {
+        &self.cfg
+    }
+
+    /// The dtype the network computes in.
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+
+    /// `Î_T = clip((1 + g) ⊙ I_S + b, 0, 1)` for `src` `(B, 3, H, W)`, `ct` `(B, 9, H, W)`.
+    pub fn forward(&self, src: &Tensor, ct: &Tensor) -> Result<Tensor> {
+        let (g, b) = self.gain_bias(src, ct)?;
+        Modulation::apply(&src.to_dtype(DType::F32)?, &g, &b)
+    }
+
+    /// The unclipped gain and bias maps `(B, 3, H, W)` each, f32 (for inspection and tests).
+    pub fn gain_bias(&self, src: &Tensor, ct: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (b, c, h, w) = src.dims4()?;
+        let (cb, cc, ch, cw) = ct.dims4()?;
+        if c != 3 || cc != 9 || (b, h, w) != (cb, ch, cw) {
+            candle_core::bail!(
+                "PixlRelight: source must be (B, 3, H, W) and C_T (B, 9, H, W) of the same B, H, W; got {:?} and {:?}",
+                src.shape(),
+                ct.shape()
+            );
+        }
+        if h == 0 || w == 0 {
+            candle_core::bail!("PixlRelight: empty image {h}×{w}");
+        }
+        let (ph, pw) = (h.div_ceil(PATCH) * PATCH, w.div_ceil(PATCH) * PATCH);
+        let (gh, gw) = (ph / PATCH, pw / PATCH);
+        let src_p = pad_replicate(&src.to_dtype(self.dtype)?, ph, pw)?;
+        let ct_p = pad_replicate(&ct.to_dtype(self.dtype)?, ph, pw)?;
+        let src_tokens = self.src_encoder.forward(&src_p)?;
+        let cond_tokens = self.cond_encoder.forward(&ct_p)?;
+        let tokens = self.fuse.forward(&src_tokens, &cond_tokens)?;
+        let readouts = self.trunk.forward(&tokens, gh, gw)?;
+        let features = self.head.forward(&readouts, ph, pw)?;
+        let (g, bias) = self.modulation.gain_bias(&features)?;
+        let crop = |t: Tensor| -> Result<Tensor> { t.narrow(2, 0, h)?.narrow(3, 0, w) };
+        Ok((crop(g)?, crop(bias)?))
+    }
+}

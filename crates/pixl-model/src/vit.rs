@@ -1,0 +1,172 @@
+//! Source encoder `src_encoder` (paper §3.2 "Asymmetric Feature Encoders"): a ViT that patchifies
+//! `I_S` with patch size 16.
+//!
+//! Input `(B, 3, H, W)` with `H`, `W` multiples of 16 (the model pads before calling); output
+//! `(B, N, d)` tokens, `N = (H/16)·(W/16)` in row-major grid order.
+//!
+//! Choices where the paper is silent:
+//! - no class token (nothing reads it: the fusion is per location);
+//! - a learned position embedding stored on a `pos_grid × pos_grid` grid and resized bilinearly
+//!   (half-pixel centres, as `F.interpolate(align_corners=False)`) to each image's grid, so any
+//!   aspect ratio works;
+//! - pre-norm blocks (timm `Block`: `x + attn(norm1(x))`, `x + mlp(norm2(x))`), no layer scale,
+//!   and a final `norm`.
+//!
+//! [`Block`] and [`Attention`] are shared with the trunk, which adds 2D RoPE.
+use crate::config::{Config, PATCH};
+use crate::layers::{conv2d, Conv};
+use candle_core::{Module, Result, Tensor};
+use candle_nn::{Conv2dConfig, Linear, VarBuilder};
+use pixl_nn::{LayerNorm, Mlp, Rope2d};
+
+/// Rotary embedding for the patch tokens of a sequence whose first `prefix` tokens (registers)
+/// are left unrotated.
+pub struct PatchRope<'a> {
+    pub rope: &'a Rope2d,
+    pub prefix: usize,
+}
+
+impl PatchRope<'_> {
+    fn apply(&self, xs: &Tensor) -> Result<Tensor> {
+        let n = xs.dim(2)?;
+        if self.prefix == 0 {
+            return self.rope.apply(xs);
+        }
+        let reg = xs.narrow(2, 0, self.prefix)?;
+        let patches = self.rope.apply(&xs.narrow(2, self.prefix, n - self.prefix)?)?;
+        Tensor::cat(&[&reg, &patches], 2)
+    }
+}
+
+/// Multi-head self-attention, fused `qkv` projection then `proj` (timm names).
+#[derive(Clone, Debug)]
+pub struct Attention {
+    qkv: Linear,
+    proj: Linear,
+    heads: usize,
+}
+
+impl Attention {
+    pub fn new(dim: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
+        let qkv = candle_nn::linear(dim, 3 * dim, vb.pp("qkv"))?;
+        let proj = candle_nn::linear(dim, dim, vb.pp("proj"))?;
+        Ok(Self { qkv, proj, heads })
+    }
+
+    /// `(B, N, d)` → `(B, N, d)`; RoPE rotates queries and keys when given.
+    pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
+        let (b, n, c) = xs.dims3()?;
+        let hd = c / self.heads;
+        let qkv = self
+            .qkv
+            .forward(xs)?
+            .reshape((b, n, 3, self.heads, hd))?
+            .permute((2, 0, 3, 1, 4))?;
+        let (mut q, mut k) = (qkv.get(0)?.contiguous()?, qkv.get(1)?.contiguous()?);
+        let v = qkv.get(2)?.contiguous()?;
+        if let Some(r) = rope {
+            q = r.apply(&q)?.contiguous()?;
+            k = r.apply(&k)?.contiguous()?;
+        }
+        let out = pixl_nn::attention(&q, &k, &v)?; // (B, heads, N, hd)
+        let out = out.transpose(1, 2)?.reshape((b, n, c))?;
+        self.proj.forward(&out)
+    }
+}
+
+/// Pre-norm transformer block: `x + attn(norm1(x))`, then `x + mlp(norm2(x))`.
+#[derive(Clone, Debug)]
+pub struct Block {
+    norm1: LayerNorm,
+    attn: Attention,
+    norm2: LayerNorm,
+    mlp: Mlp,
+}
+
+impl Block {
+    pub fn new(dim: usize, heads: usize, mlp_ratio: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            norm1: LayerNorm::new(dim, eps, vb.pp("norm1"))?,
+            attn: Attention::new(dim, heads, vb.pp("attn"))?,
+            norm2: LayerNorm::new(dim, eps, vb.pp("norm2"))?,
+            mlp: Mlp::new(dim, mlp_ratio * dim, dim, vb.pp("mlp"))?,
+        })
+    }
+
+    pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
+        let xs = (xs + self.attn.forward(&self.norm1.forward(xs)?, rope)?)?;
+        &xs + self.mlp.forward(&self.norm2.forward(&xs)?)?
+    }
+}
+
+/// The ViT source encoder (`src_encoder.*`).
+#[derive(Clone, Debug)]
+pub struct VitEncoder {
+    patch_embed: Conv,
+    pos_embed: Tensor,
+    blocks: Vec<Block>,
+    norm: LayerNorm,
+    dim: usize,
+    pos_grid: usize,
+}
+
+impl VitEncoder {
+    pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Self> {
+        let v = &cfg.src_encoder;
+        let conv_cfg = Conv2dConfig {
+            stride: PATCH,
+            ..Default::default()
+        };
+        let patch_embed = conv2d(3, cfg.dim, PATCH, conv_cfg, vb.pp("patch_embed").pp("proj"))?;
+        let init = candle_nn::Init::Randn { mean: 0.0, stdev: 0.02 };
+        let pos_embed = vb.get_with_hints((1, v.pos_grid * v.pos_grid, cfg.dim), "pos_embed", init)?;
+        let blocks = (0..v.depth)
+            .map(|i| Block::new(cfg.dim, v.heads, v.mlp_ratio, cfg.norm_eps, vb.pp("blocks").pp(i)))
+            .collect::<Result<Vec<_>>>()?;
+        let norm = LayerNorm::new(cfg.dim, cfg.norm_eps, vb.pp("norm"))?;
+        Ok(Self {
+            patch_embed,
+            pos_embed,
+            blocks,
+            norm,
+            dim: cfg.dim,
+            pos_grid: v.pos_grid,
+        })
+    }
+
+    /// The position embedding resized to a `(gh, gw)` grid, `(1, gh·gw, d)`.
+    fn pos_embed_for(&self, gh: usize, gw: usize) -> Result<Tensor> {
+        let g = self.pos_grid;
+        if gh == g && gw == g {
+            return Ok(self.pos_embed.clone());
+        }
+        let grid = self.pos_embed.reshape((1, g, g, self.dim))?.permute((0, 3, 1, 2))?;
+        let resized = pixl_nn::ops::resize_bilinear(&grid.contiguous()?, gh, gw)?;
+        resized.flatten_from(2)?.transpose(1, 2)
+    }
+
+    /// `(B, 3, H, W)` → `(B, (H/16)(W/16), d)`.
+    pub fn forward(&self, src: &Tensor) -> Result<Tensor> {
+        let xs = self.patch_embed.forward(src)?; // (B, d, gh, gw)
+        let (_b, _d, gh, gw) = xs.dims4()?;
+        let mut xs = xs
+            .flatten_from(2)?
+            .transpose(1, 2)?
+            .broadcast_add(&self.pos_embed_for(gh, gw)?)?;
+        for block in &self.blocks {
+            xs = block.forward(&xs, None)?;
+        }
+        self.norm.forward(&xs.contiguous()?)
+    }
+}
+
+/// `(B, N, C)` tokens of a `(gh, gw)` grid → `(B, C, gh, gw)`.
+pub fn tokens_to_grid(xs: &Tensor, gh: usize, gw: usize) -> Result<Tensor> {
+    let (b, _n, c) = xs.dims3()?;
+    xs.transpose(1, 2)?.reshape((b, c, gh, gw))
+}
+
+/// `(B, C, gh, gw)` → `(B, gh·gw, C)` tokens.
+pub fn grid_to_tokens(xs: &Tensor) -> Result<Tensor> {
+    xs.flatten_from(2)?.transpose(1, 2)?.contiguous()
+}
