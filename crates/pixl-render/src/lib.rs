@@ -24,6 +24,7 @@ pub mod light;
 pub mod material;
 pub mod math;
 pub mod mesh;
+pub mod presets;
 pub mod sampling;
 pub mod scene;
 pub mod texture;
