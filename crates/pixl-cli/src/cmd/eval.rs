@@ -1,9 +1,145 @@
-//! `pixl eval` (placeholder until its issue lands).
+//! `pixl eval`: score a model and baselines on a paired dataset (paper §4.1). A thin layer over
+//! `pixl_eval::run_eval`: it opens the dataset, builds the pair list and the methods, runs, prints
+//! the table and writes `results.md`, `results.json` and `per_pair.csv` into `--out`.
 use crate::Ctx;
+use anyhow::Context as _;
+use candle_core::{DType, Device};
+use pixl_eval::{baselines::Method, EvalOptions, Lpips, ModelMethod};
+use pixl_train::data::Split;
+use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
-pub struct Args {}
+#[command(
+    after_help = "Examples:\n  pixl eval --dataset miiw:/data/miiw --weights model.safetensors --lpips alex_lpips.safetensors --out eval-miiw\n  pixl eval --dataset folder:shots --baselines identity,compose --pairs pairs.csv --out eval-shots"
+)]
+pub struct Args {
+    /// Dataset as KIND:ROOT (miiw, miiw@MIP, bigtime, vidit, folder, synth; see `pixl train --help`).
+    #[arg(long)]
+    pub dataset: String,
+    /// Which scenes: test (default; MIIW: the 30 `everett*` scenes), train or all.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// PIXLRelight checkpoint (.safetensors) to evaluate as "Ours".
+    #[arg(long)]
+    pub weights: Option<PathBuf>,
+    /// Baselines, comma-separated: identity (the source), compose (A⊙S+R of C_T). Empty for none.
+    #[arg(long, default_value = "identity,compose")]
+    pub baselines: String,
+    /// Pair list, CSV `scene,source,target` (image file names). Default: per scene, image i → i+1 (mod n).
+    #[arg(long)]
+    pub pairs: Option<PathBuf>,
+    /// Evaluate only the first N pairs of the list.
+    #[arg(long)]
+    pub limit: Option<usize>,
+    /// Score raw predictions (no per-channel least-squares scale correction).
+    #[arg(long)]
+    pub no_scale_correction: bool,
+    /// LPIPS v0.1 weights (one safetensors file: torchvision `features.*` + `lin0..4.model.1.weight`).
+    /// Without it LPIPS is reported as absent.
+    #[arg(long)]
+    pub lpips: Option<PathBuf>,
+    /// Output directory for results.md, results.json, per_pair.csv.
+    #[arg(long, default_value = "eval-out")]
+    pub out: PathBuf,
+    /// Print the JSON summary (method rows) on stdout instead of the table.
+    #[arg(long)]
+    pub json: bool,
+    /// Device for the network: cpu, or cuda[:N] (needs a build with `--features cuda`).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Network dtype: f32 or bf16.
+    #[arg(long, default_value = "f32")]
+    pub dtype: String,
+    /// Timing protocol: untimed warm-ups.
+    #[arg(long, default_value_t = pixl_eval::DEFAULT_WARMUPS)]
+    pub warmups: usize,
+    /// Timing protocol: timed runs (0: no timing).
+    #[arg(long, default_value_t = pixl_eval::DEFAULT_RUNS)]
+    pub runs: usize,
+}
 
-pub fn run(_args: Args, _ctx: &Ctx) -> anyhow::Result<()> {
-    anyhow::bail!("`pixl eval` is not available in this build yet")
+fn parse_device(s: &str) -> anyhow::Result<Device> {
+    match s {
+        "cpu" => Ok(Device::Cpu),
+        _ if s.starts_with("cuda") => {
+            let ord = s.strip_prefix("cuda").and_then(|r| r.strip_prefix(':')).unwrap_or("0");
+            let ord: usize = ord.parse().with_context(|| format!("--device {s}: bad CUDA ordinal"))?;
+            Device::new_cuda(ord)
+                .with_context(|| format!("--device {s}: CUDA is not available in this build or machine"))
+        }
+        _ => anyhow::bail!("--device {s:?}: expected cpu or cuda[:N]"),
+    }
+}
+
+fn parse_dtype(s: &str) -> anyhow::Result<DType> {
+    match s {
+        "f32" => Ok(DType::F32),
+        "bf16" => Ok(DType::BF16),
+        _ => anyhow::bail!("--dtype {s:?}: expected f32 or bf16"),
+    }
+}
+
+pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
+    let split: Split = args.split.parse()?;
+    let dataset = pixl_train::data::open(&args.dataset, split)?;
+    let mut pairs = match &args.pairs {
+        Some(path) => pixl_eval::read_pairs(path, dataset.as_ref())?,
+        None => pixl_eval::default_pairs(dataset.as_ref()),
+    };
+    if let Some(n) = args.limit {
+        pairs.truncate(n);
+    }
+    let device = parse_device(&args.device)?;
+    let dtype = parse_dtype(&args.dtype)?;
+
+    let mut methods: Vec<Box<dyn Method>> = Vec::new();
+    if let Some(w) = &args.weights {
+        let (_cfg, model) = pixl_model::checkpoint::load(w, &device, dtype)?;
+        methods.push(Box::new(ModelMethod {
+            label: "Ours".into(),
+            model,
+            device: device.clone(),
+        }));
+    }
+    methods.extend(pixl_eval::parse_baselines(&args.baselines)?);
+    let lpips = match &args.lpips {
+        Some(p) => Some(Lpips::load(p, &device)?),
+        None => None,
+    };
+    let opts = EvalOptions {
+        scale_correction: !args.no_scale_correction,
+        warmups: args.warmups,
+        runs: args.runs,
+    };
+
+    let pb = ctx.progress(pairs.len() as u64, "eval");
+    let report = pixl_eval::run_eval(&args.dataset, &pairs, &methods, lpips.as_ref(), &opts, |i| {
+        pb.set_position(i as u64)
+    })?;
+    pb.finish_and_clear();
+    pixl_eval::write_reports(&report, &args.out)?;
+
+    if args.json {
+        // The summary rows as JSON, with the same "inf" convention as results.json.
+        let summary = serde_json::json!({
+            "dataset": report.dataset,
+            "pairs": report.pairs,
+            "scale_correction": report.scale_correction,
+            "lpips_net": report.lpips_net,
+            "methods": report.methods,
+        });
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        ctx.say(pixl_eval::report::markdown(&report));
+        for m in &report.methods {
+            if let Some(t) = &m.timing {
+                ctx.say(format!("time {}: {} on {}", m.method, t.describe(), m.device));
+            }
+        }
+        ctx.say(format!(
+            "wrote {}/results.md, results.json, per_pair.csv",
+            args.out.display()
+        ));
+    }
+    Ok(())
 }

@@ -1,0 +1,229 @@
+//! `pixl eval` end to end on a tiny fake `folder:` dataset built here: two scenes of three 32×32
+//! PNGs, each with its exact `<stem>.intrinsics.exr` beside it (the training loader's rule).
+use pixl_core::image::linear_to_srgb;
+use pixl_core::io::{write_png, PngDepth};
+use pixl_core::Image;
+use pixl_intrinsics::ct::{write_ct, Ct};
+use std::path::Path;
+use std::process::Command;
+
+const SIDE: usize = 32;
+
+fn pixl() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_pixl"))
+}
+
+/// Scene `s`, light `l`: the PNG is exactly sRGB(A ⊙ S_l), 8-bit, with a C_T of R = 0, so the
+/// compose baseline reproduces it up to 8-bit quantisation.
+fn make_dataset(root: &Path) {
+    for s in 0..2 {
+        let dir = root.join(format!("scene{s}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        let albedo = Image::from_fn(SIDE, SIDE, 3, |x, y, c| {
+            0.2 + 0.6 * (((x * 7 + y * 3 + c * 5 + s) % 11) as f32 / 10.0)
+        });
+        for l in 0..3 {
+            let shading = Image::from_fn(SIDE, SIDE, 3, |x, y, _| {
+                let (cx, cy) = ([4.0, 28.0, 16.0][l], [4.0, 10.0, 28.0][l]);
+                let d2 = (x as f32 - cx).powi(2) + (y as f32 - cy).powi(2);
+                0.1 + 0.9 * (-d2 / 300.0).exp()
+            });
+            let residual = Image::new(SIDE, SIDE, 3);
+            let ct = Ct::new(albedo.clone(), shading, residual).unwrap();
+            let photo = ct.recompose().map(|v| linear_to_srgb(v.clamp(0.0, 1.0)));
+            write_png(&dir.join(format!("light{l}.png")), &photo, PngDepth::Eight).unwrap();
+            write_ct(&dir.join(format!("light{l}.intrinsics.exr")), &ct).unwrap();
+        }
+    }
+}
+
+fn csv_rows(path: &Path) -> Vec<Vec<String>> {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(lines.next().unwrap(), "scene,source,target,method,psnr,ssim,lpips");
+    lines.map(|l| l.split(',').map(String::from).collect()).collect()
+}
+
+#[test]
+fn eval_writes_three_outputs_and_identity_is_exact_on_equal_pairs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    make_dataset(&root);
+    let pairs = tmp.path().join("pairs.csv");
+    std::fs::write(
+        &pairs,
+        "scene,source,target\nscene0,light1.png,light1.png\nscene1,light2.png,light2.png\nscene0,light0.png,light2.png\n",
+    )
+    .unwrap();
+    let out = tmp.path().join("out");
+    let o = pixl()
+        .args(["eval", "--dataset"])
+        .arg(format!("folder:{}", root.display()))
+        .args([
+            "--split",
+            "all",
+            "--baselines",
+            "identity,compose",
+            "--runs",
+            "2",
+            "--warmups",
+            "1",
+            "--pairs",
+        ])
+        .arg(&pairs)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        stdout.contains("| Method | Lighting cue | PSNR ↑ | SSIM ↑ | LPIPS ↓ | Time (s) ↓ |"),
+        "{stdout}"
+    );
+    for f in ["results.md", "results.json", "per_pair.csv"] {
+        assert!(out.join(f).is_file(), "missing {f}");
+    }
+    let rows = csv_rows(&out.join("per_pair.csv"));
+    assert_eq!(rows.len(), 3 * 2, "3 pairs x 2 methods");
+    for r in &rows {
+        let (src, tgt, method) = (&r[1], &r[2], &r[3]);
+        let psnr: f64 = r[4].parse().unwrap();
+        let ssim: f64 = r[5].parse().unwrap();
+        assert_eq!(r[6], "", "LPIPS absent without weights");
+        if method.starts_with("Identity") && src == tgt {
+            assert_eq!(r[4], "inf", "{r:?}");
+            assert_eq!(ssim, 1.0, "{r:?}");
+        } else if method.starts_with("Compose") {
+            // The target is sRGB(A⊙S) in 8 bits: only quantisation (≤ 1/510) separates them.
+            assert!(psnr > 45.0 && ssim > 0.99, "{r:?}");
+        } else {
+            assert!(psnr.is_finite() && psnr < 40.0, "different lights must differ: {r:?}");
+        }
+    }
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    assert_eq!(json["pairs"], 3);
+    assert_eq!(json["scale_correction"], true);
+    let methods = json["methods"].as_array().unwrap();
+    assert_eq!(methods.len(), 2);
+    assert!(methods[0]["lpips"].is_null());
+    assert_eq!(methods[0]["timing"]["runs_ms"].as_array().unwrap().len(), 2);
+    // The identity's mean includes one finite pair, so it is finite; per-pair entries carry "inf".
+    assert!(json["per_pair"].as_array().unwrap().iter().any(|p| p["psnr"] == "inf"));
+}
+
+#[test]
+fn default_pairs_fresh_model_equals_identity_and_json_summary() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    make_dataset(&root);
+    // Fresh weights return the source exactly (zero-initialised modulation), so "Ours" must
+    // score exactly like the identity on every pair.
+    let weights = tmp.path().join("tiny.safetensors");
+    let o = pixl()
+        .args(["model", "init", "--config", "tiny", "--seed", "0", "-o"])
+        .arg(&weights)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "model init: {}", String::from_utf8_lossy(&o.stderr));
+    let out = tmp.path().join("out");
+    let o = pixl()
+        .args([
+            "eval",
+            "--json",
+            "--split",
+            "all",
+            "--baselines",
+            "identity",
+            "--runs",
+            "1",
+            "--warmups",
+            "0",
+        ])
+        .arg("--dataset")
+        .arg(format!("folder:{}", root.display()))
+        .arg("--weights")
+        .arg(&weights)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    // Default list: per scene i → (i+1) mod 3, two scenes.
+    assert_eq!(summary["pairs"], 6);
+    let m = summary["methods"].as_array().unwrap();
+    assert_eq!(m[0]["method"], "Ours");
+    assert_eq!(m[1]["method"], "Identity (source)");
+    assert_eq!(m[0]["psnr"], m[1]["psnr"]);
+    assert_eq!(m[0]["ssim"], m[1]["ssim"]);
+    assert!(m[0]["device"].as_str().unwrap().starts_with("cpu"));
+    let rows = csv_rows(&out.join("per_pair.csv"));
+    let pairs: Vec<(String, String)> = rows
+        .iter()
+        .filter(|r| r[3] == "Ours")
+        .map(|r| (r[1].clone(), r[2].clone()))
+        .collect();
+    let want: Vec<(String, String)> = [("light0", "light1"), ("light1", "light2"), ("light2", "light0")]
+        .iter()
+        .cycle()
+        .take(6)
+        .map(|(a, b)| (format!("{a}.png"), format!("{b}.png")))
+        .collect();
+    assert_eq!(pairs, want);
+}
+
+#[test]
+fn bad_pair_list_names_file_and_line() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    make_dataset(&root);
+    let pairs = tmp.path().join("pairs.csv");
+    std::fs::write(&pairs, "scene0,light0.png,light1.png\nscene0,light0.png,nope.png\n").unwrap();
+    let o = pixl()
+        .args(["eval", "--split", "all", "--dataset"])
+        .arg(format!("folder:{}", root.display()))
+        .arg("--pairs")
+        .arg(&pairs)
+        .arg("--out")
+        .arg(tmp.path().join("out"))
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("pairs.csv, line 2") && err.contains("nope.png"), "{err}");
+    assert!(!tmp.path().join("out").join("results.json").exists());
+}
+
+#[test]
+fn missing_intrinsics_is_an_error_for_compose_not_identity() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    make_dataset(&root);
+    std::fs::remove_file(root.join("scene0/light1.intrinsics.exr")).unwrap();
+    let run = |baselines: &str| {
+        pixl()
+            .args([
+                "eval",
+                "-q",
+                "--split",
+                "all",
+                "--baselines",
+                baselines,
+                "--runs",
+                "0",
+                "--dataset",
+            ])
+            .arg(format!("folder:{}", root.display()))
+            .arg("--out")
+            .arg(tmp.path().join(format!("out-{baselines}")))
+            .output()
+            .unwrap()
+    };
+    let o = run("compose");
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("light1.intrinsics.exr"));
+    let o = run("identity");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+}
