@@ -11,7 +11,11 @@ pub struct Panel {
 impl Panel {
     /// Encodes `img` (values in [0, 1], clamped) as an 8-bit PNG.
     pub fn new(label: &str, img: &Image, caption: Option<String>) -> Self {
-        Panel { label: label.into(), png: png_bytes(img), caption }
+        Panel {
+            label: label.into(),
+            png: png_bytes(img),
+            caption,
+        }
     }
 }
 
@@ -28,7 +32,11 @@ pub struct Report {
 
 fn png_bytes(img: &Image) -> Vec<u8> {
     use image::ImageEncoder;
-    let bytes: Vec<u8> = img.data.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+    let bytes: Vec<u8> = img
+        .data
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect();
     let color = match img.channels {
         1 => image::ExtendedColorType::L8,
         4 => image::ExtendedColorType::Rgba8,
@@ -36,7 +44,8 @@ fn png_bytes(img: &Image) -> Vec<u8> {
     };
     let mut out = Vec::new();
     // Encoding an in-memory buffer of the right size cannot fail; an empty image yields no bytes.
-    let _ = image::codecs::png::PngEncoder::new(&mut out).write_image(&bytes, img.width as u32, img.height as u32, color);
+    let _ =
+        image::codecs::png::PngEncoder::new(&mut out).write_image(&bytes, img.width as u32, img.height as u32, color);
     out
 }
 
@@ -59,7 +68,10 @@ pub fn base64(bytes: &[u8]) -> String {
 }
 
 fn escape(s: &str) -> String {
-    s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
 }
 
 impl Report {
@@ -104,7 +116,15 @@ mod tests {
     #[test]
     fn base64_known_vectors() {
         // RFC 4648 §10 test vectors.
-        for (i, o) in [("", ""), ("f", "Zg=="), ("fo", "Zm8="), ("foo", "Zm9v"), ("foob", "Zm9vYg=="), ("fooba", "Zm9vYmE="), ("foobar", "Zm9vYmFy")] {
+        for (i, o) in [
+            ("", ""),
+            ("f", "Zg=="),
+            ("fo", "Zm8="),
+            ("foo", "Zm9v"),
+            ("foob", "Zm9vYg=="),
+            ("fooba", "Zm9vYmE="),
+            ("foobar", "Zm9vYmFy"),
+        ] {
             assert_eq!(base64(i.as_bytes()), o);
         }
     }

@@ -1,0 +1,67 @@
+//! `pixl demo` end to end (issue 7): the report exists and holds every panel for every preset.
+use std::process::Command;
+
+#[test]
+fn demo_writes_a_complete_report() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("demo");
+    let o = Command::new(env!("CARGO_BIN_EXE_pixl"))
+        .args(["demo", "--quiet", "--spp", "2", "--json", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "demo failed: {stderr}");
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    let presets = [
+        "cool-side-flash",
+        "warm-overhead-flash",
+        "dim-overhead-spot",
+        "soft-frontal-sun",
+        "warm-interior-sun",
+    ];
+    assert_eq!(html.matches("<section class=\"row\">").count(), presets.len());
+    let panels = [
+        "source",
+        "path-traced render",
+        "albedo A",
+        "shading S",
+        "residual R",
+        "relit (ours)",
+        "ground truth",
+    ];
+    for p in panels {
+        assert_eq!(
+            html.matches(&format!("<img alt=\"{p}\" src=\"data:image/png;base64,iVBORw0KGgo"))
+                .count(),
+            presets.len(),
+            "panel {p}"
+        );
+    }
+    assert_eq!(
+        html.matches("<span class=\"m\">PSNR").count(),
+        2 * presets.len(),
+        "PSNR under source and relit"
+    );
+    for p in presets {
+        assert!(html.contains(&format!("<h2>{p}</h2>")), "{p}");
+        for f in [
+            "relit.png",
+            "path_traced.png",
+            "albedo.png",
+            "shading.png",
+            "residual.png",
+            "CT.exr",
+        ] {
+            assert!(out.join(p).join(f).is_file(), "{p}/{f}");
+        }
+    }
+    // The JSON summary carries finite metrics (or "inf" for an exact match), one entry per preset.
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let rows = v["presets"].as_array().unwrap();
+    assert_eq!(rows.len(), presets.len());
+    for r in rows {
+        let ssim = r["relit"]["ssim"].as_f64().unwrap();
+        assert!(ssim.is_finite() && ssim <= 1.0 + 1e-9, "{r}");
+    }
+}
