@@ -7,7 +7,6 @@ use std::process::ExitCode;
 
 mod cmd;
 mod ctx;
-#[allow(dead_code)]
 mod report;
 
 pub use ctx::Ctx;

@@ -16,7 +16,9 @@ struct Fixture {
 
 impl Fixture {
     fn new() -> Self {
-        Fixture { dir: tempfile::tempdir().expect("tempdir") }
+        Fixture {
+            dir: tempfile::tempdir().expect("tempdir"),
+        }
     }
     fn path(&self, name: &str) -> PathBuf {
         self.dir.path().join(name)
@@ -43,14 +45,31 @@ impl Fixture {
     /// Fresh `tiny` weights, made by the binary itself.
     fn weights(&self) -> PathBuf {
         let p = self.path("w.safetensors");
-        let out = pixl(&["model", "init", "--config", "tiny", "--seed", "0", "-o", p.to_str().unwrap()]);
-        assert!(out.status.success(), "model init failed: {}", String::from_utf8_lossy(&out.stderr));
+        let out = pixl(&[
+            "model",
+            "init",
+            "--config",
+            "tiny",
+            "--seed",
+            "0",
+            "-o",
+            p.to_str().unwrap(),
+        ]);
+        assert!(
+            out.status.success(),
+            "model init failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         p
     }
 }
 
 fn pixl(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_pixl")).args(args).arg("--quiet").output().expect("run pixl")
+    Command::new(env!("CARGO_BIN_EXE_pixl"))
+        .args(args)
+        .arg("--quiet")
+        .output()
+        .expect("run pixl")
 }
 
 /// Runs `pixl args`, expects failure whose stderr contains every `needles` (case-insensitive),
@@ -59,11 +78,19 @@ fn expect_failure(args: &[&str], needles: &[&str], out: &Path) {
     let o = pixl(args);
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success(), "pixl {args:?} succeeded; stderr: {stderr}");
-    assert_eq!(o.status.code(), Some(1), "pixl {args:?}: exit {:?}; stderr: {stderr}", o.status.code());
+    assert_eq!(
+        o.status.code(),
+        Some(1),
+        "pixl {args:?}: exit {:?}; stderr: {stderr}",
+        o.status.code()
+    );
     assert!(!stderr.contains("panicked"), "pixl {args:?} panicked: {stderr}");
     let low = stderr.to_lowercase();
     for n in needles {
-        assert!(low.contains(&n.to_lowercase()), "pixl {args:?}: stderr lacks {n:?}: {stderr}");
+        assert!(
+            low.contains(&n.to_lowercase()),
+            "pixl {args:?}: stderr lacks {n:?}: {stderr}"
+        );
     }
     assert!(!out.exists(), "pixl {args:?} left an output file {}", out.display());
     if let Some(dir) = out.parent() {
@@ -77,7 +104,17 @@ fn expect_failure(args: &[&str], needles: &[&str], out: &Path) {
 }
 
 fn relight_args<'a>(src: &'a str, ct: &'a str, w: &'a str, out: &'a str) -> Vec<&'a str> {
-    vec!["relight", "--source", src, "--intrinsics", ct, "--weights", w, "--out", out]
+    vec![
+        "relight",
+        "--source",
+        src,
+        "--intrinsics",
+        ct,
+        "--weights",
+        w,
+        "--out",
+        out,
+    ]
 }
 
 fn s(p: &Path) -> &str {
@@ -156,7 +193,11 @@ fn intrinsics_with_wrong_channels() {
     let (src, w, out) = (f.source(), f.weights(), f.path("out.png"));
     let rgb = f.path("rgb.exr");
     write_image(&rgb, &Image::new(W, H, 3)).unwrap();
-    expect_failure(&relight_args(s(&src), s(&rgb), s(&w), s(&out)), &["rgb.exr", "albedo"], &out);
+    expect_failure(
+        &relight_args(s(&src), s(&rgb), s(&w), s(&out)),
+        &["rgb.exr", "albedo"],
+        &out,
+    );
 }
 
 #[test]
@@ -168,7 +209,11 @@ fn nan_in_source() {
     img.set(4, 2, 0, f32::INFINITY);
     let nan = f.path("nan.exr");
     write_image(&nan, &img).unwrap();
-    expect_failure(&relight_args(s(&nan), s(&ct), s(&w), s(&out)), &["nan.exr", "non-finite", "2 "], &out);
+    expect_failure(
+        &relight_args(s(&nan), s(&ct), s(&w), s(&out)),
+        &["nan.exr", "non-finite", "2 "],
+        &out,
+    );
 }
 
 #[test]
@@ -205,14 +250,22 @@ fn absurd_image_header_is_refused_before_allocating() {
     let (ct, w, out) = (f.ct("ct.exr", W, H), f.weights(), f.path("out.png"));
     let p = f.path("huge.png");
     std::fs::write(&p, png_header_only(200_000, 200_000)).unwrap();
-    expect_failure(&relight_args(s(&p), s(&ct), s(&w), s(&out)), &["huge.png", "200000x200000"], &out);
+    expect_failure(
+        &relight_args(s(&p), s(&ct), s(&w), s(&out)),
+        &["huge.png", "200000x200000"],
+        &out,
+    );
 }
 
 #[test]
 fn source_and_intrinsics_differ_in_size() {
     let f = Fixture::new();
     let (src, ct, w, out) = (f.source(), f.ct("small.exr", W / 2, H), f.weights(), f.path("out.png"));
-    expect_failure(&relight_args(s(&src), s(&ct), s(&w), s(&out)), &["32x24", "16x24"], &out);
+    expect_failure(
+        &relight_args(s(&src), s(&ct), s(&w), s(&out)),
+        &["32x24", "16x24"],
+        &out,
+    );
 }
 
 #[test]
@@ -222,7 +275,11 @@ fn truncated_weights() {
     let bytes = std::fs::read(&w).unwrap();
     let cut = f.path("cut.safetensors");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
-    expect_failure(&relight_args(s(&src), s(&ct), s(&cut), s(&out)), &["cut.safetensors"], &out);
+    expect_failure(
+        &relight_args(s(&src), s(&ct), s(&cut), s(&out)),
+        &["cut.safetensors"],
+        &out,
+    );
 }
 
 #[test]
@@ -231,7 +288,11 @@ fn garbage_weights() {
     let (src, ct, out) = (f.source(), f.ct("ct.exr", W, H), f.path("out.png"));
     let g = f.path("garbage.safetensors");
     std::fs::write(&g, b"\xff\xff\xff\xff\xff\xff\xff\x7fnot json at all").unwrap();
-    expect_failure(&relight_args(s(&src), s(&ct), s(&g), s(&out)), &["garbage.safetensors"], &out);
+    expect_failure(
+        &relight_args(s(&src), s(&ct), s(&g), s(&out)),
+        &["garbage.safetensors"],
+        &out,
+    );
 }
 
 /// Rewrites one tensor of a safetensors file: `shape` and `dtype` as given, data zero-filled.
@@ -244,7 +305,11 @@ fn rewrite_tensor(src: &Path, dst: &Path, shape: Option<Vec<usize>>, dtype: Opti
     let meta = map.remove("__metadata__");
     let mut names: Vec<String> = map.keys().cloned().collect();
     names.sort();
-    let victim = names.iter().find(|k| k.ends_with(".weight") && k.contains("fuse")).unwrap_or(&names[0]).clone();
+    let victim = names
+        .iter()
+        .find(|k| k.ends_with(".weight") && k.contains("fuse"))
+        .unwrap_or(&names[0])
+        .clone();
     let mut out_header = serde_json::Map::new();
     if let Some(m) = meta {
         out_header.insert("__metadata__".into(), m);
@@ -253,8 +318,18 @@ fn rewrite_tensor(src: &Path, dst: &Path, shape: Option<Vec<usize>>, dtype: Opti
     for name in &names {
         let t = &map[name];
         let mut dt = t["dtype"].as_str().unwrap().to_string();
-        let mut sh: Vec<usize> = t["shape"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap() as usize).collect();
-        let off: Vec<usize> = t["data_offsets"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap() as usize).collect();
+        let mut sh: Vec<usize> = t["shape"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap() as usize)
+            .collect();
+        let off: Vec<usize> = t["data_offsets"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap() as usize)
+            .collect();
         let mut chunk = data[off[0]..off[1]].to_vec();
         if name == &victim {
             if let Some(s) = &shape {
@@ -294,7 +369,11 @@ fn weights_with_a_wrong_shape() {
     let (src, ct, w, out) = (f.source(), f.ct("ct.exr", W, H), f.weights(), f.path("out.png"));
     let bad = f.path("shape.safetensors");
     let victim = rewrite_tensor(&w, &bad, Some(vec![3, 5]), None);
-    expect_failure(&relight_args(s(&src), s(&ct), s(&bad), s(&out)), &["shape.safetensors", &victim], &out);
+    expect_failure(
+        &relight_args(s(&src), s(&ct), s(&bad), s(&out)),
+        &["shape.safetensors", &victim],
+        &out,
+    );
 }
 
 #[test]
@@ -305,11 +384,25 @@ fn weights_with_a_wrong_dtype() {
     let bytes = std::fs::read(&w).unwrap();
     let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
     let header: serde_json::Value = serde_json::from_slice(&bytes[8..8 + n]).unwrap();
-    let first = header.as_object().unwrap().iter().find(|(k, _)| *k != "__metadata__").unwrap();
-    let shape: Vec<usize> = first.1["shape"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap() as usize).collect();
+    let first = header
+        .as_object()
+        .unwrap()
+        .iter()
+        .find(|(k, _)| *k != "__metadata__")
+        .unwrap();
+    let shape: Vec<usize> = first.1["shape"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_u64().unwrap() as usize)
+        .collect();
     let victim = rewrite_tensor(&w, &bad, Some(shape.clone()), Some("I32"));
     let _ = victim;
-    expect_failure(&relight_args(s(&src), s(&ct), s(&bad), s(&out)), &["dtype.safetensors"], &out);
+    expect_failure(
+        &relight_args(s(&src), s(&ct), s(&bad), s(&out)),
+        &["dtype.safetensors"],
+        &out,
+    );
 }
 
 #[test]
@@ -317,7 +410,11 @@ fn missing_input() {
     let f = Fixture::new();
     let (ct, w, out) = (f.ct("ct.exr", W, H), f.weights(), f.path("out.png"));
     let missing = f.path("no-such-photo.png");
-    expect_failure(&relight_args(s(&missing), s(&ct), s(&w), s(&out)), &["no-such-photo.png", "not found"], &out);
+    expect_failure(
+        &relight_args(s(&missing), s(&ct), s(&w), s(&out)),
+        &["no-such-photo.png", "not found"],
+        &out,
+    );
 }
 
 #[test]
@@ -344,17 +441,31 @@ fn scene_with_light(f: &Fixture, light: &str) -> PathBuf {
 #[test]
 fn scene_with_unknown_light_type() {
     let f = Fixture::new();
-    let scene = scene_with_light(&f, "[[lights]]\ntype = \"laser\"\nposition = [0.0, 2.0, 0.0]\npower = 10.0");
+    let scene = scene_with_light(
+        &f,
+        "[[lights]]\ntype = \"laser\"\nposition = [0.0, 2.0, 0.0]\npower = 10.0",
+    );
     let out = f.path("passes.exr");
-    expect_failure(&["render", s(&scene), "--spp", "1", "-o", s(&out)], &["scene.toml", "laser"], &out);
+    expect_failure(
+        &["render", s(&scene), "--spp", "1", "-o", s(&out)],
+        &["scene.toml", "laser"],
+        &out,
+    );
 }
 
 #[test]
 fn scene_with_negative_power() {
     let f = Fixture::new();
-    let scene = scene_with_light(&f, "[[lights]]\ntype = \"point\"\nposition = [0.0, 2.0, 0.0]\npower = -5.0");
+    let scene = scene_with_light(
+        &f,
+        "[[lights]]\ntype = \"point\"\nposition = [0.0, 2.0, 0.0]\npower = -5.0",
+    );
     let out = f.path("passes.exr");
-    expect_failure(&["render", s(&scene), "--spp", "1", "-o", s(&out)], &["scene.toml", "power"], &out);
+    expect_failure(
+        &["render", s(&scene), "--spp", "1", "-o", s(&out)],
+        &["scene.toml", "power"],
+        &out,
+    );
 }
 
 #[test]
