@@ -25,6 +25,8 @@ pub enum TrainError {
     Config(String),
     #[error(transparent)]
     Intrinsics(#[from] pixl_intrinsics::IntrinsicsError),
+    #[error(transparent)]
+    Model(#[from] pixl_model::CheckpointError),
     #[error("tensor error: {0}")]
     Candle(#[from] candle_core::Error),
     #[error("{0}")]

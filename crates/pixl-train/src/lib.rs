@@ -3,7 +3,20 @@
 //! - [`data`]: dataset loaders (MIIW, BigTime, VIDIT, a generic folder, our synthetic renders),
 //!   target-intrinsics lookup, and the pair sampler (same crop / resize / flip for source, target
 //!   and C_T; no photometric augmentation).
+//! - [`optim`]: AdamW (decay exemptions), the warm-up + cosine schedule, global-norm clipping.
+//! - [`loss`]: L1 + λ·VGG16 perceptual (feature L1).
+//! - [`config`]: `train.toml`.
+//! - [`trainer`]: the loop (accumulation, C_T corruption, logs, sample grids, checkpoints).
+//! - [`state`]: the resumable checkpoint file (bit-exact resume on CPU).
+pub mod config;
 pub mod data;
 pub mod error;
+pub mod loss;
+pub mod optim;
+pub mod state;
+pub mod synth;
+pub mod trainer;
 
+pub use config::TrainConfig;
 pub use error::{Result, TrainError};
+pub use trainer::{StepReport, Trainer};

@@ -31,7 +31,7 @@ use pixl_intrinsics::ct::Ct;
 use std::path::{Path, PathBuf};
 
 mod bigtime;
-mod folder;
+pub mod folder;
 mod miiw;
 pub mod sampler;
 mod vidit;

@@ -1,0 +1,196 @@
+//! `train.toml`: every setting of a training run, with the paper's values as defaults.
+//!
+//! ```toml
+//! [model]
+//! preset = "tiny"            # tiny | small | paper | path to a model config (.toml/.json)
+//! init_seed = 0
+//! [data]
+//! dataset = "synth:data/synth"   # see pixl_train::data::open
+//! split = "train"
+//! cache = true                   # keep decoded images in memory
+//! [data.sampler]
+//! long_side = 512
+//! [optim]
+//! batch_size = 4
+//! accumulate = 1                 # micro-batches per step (effective batch = batch_size × accumulate)
+//! clip_norm = 1.0
+//! [optim.schedule]
+//! peak_lr = 5e-5
+//! [loss]
+//! perceptual_weight = 0.2
+//! vgg = "vgg16.safetensors"
+//! [run]
+//! out_dir = "runs/tiny"
+//! steps = 200000
+//! ```
+use crate::data::{SamplerConfig, Split};
+use crate::error::{Result, TrainError};
+use crate::optim::{AdamWConfig, LrSchedule};
+use std::path::{Path, PathBuf};
+
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainConfig {
+    pub model: ModelSection,
+    pub data: DataSection,
+    pub optim: OptimSection,
+    pub loss: LossSection,
+    pub augment: AugmentSection,
+    pub run: RunSection,
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ModelSection {
+    pub preset: String,
+    pub init_seed: u64,
+}
+
+impl Default for ModelSection {
+    fn default() -> Self {
+        Self {
+            preset: "tiny".into(),
+            init_seed: 0,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DataSection {
+    pub dataset: String,
+    pub split: Split,
+    pub cache: bool,
+    pub sampler: SamplerConfig,
+}
+
+impl Default for DataSection {
+    fn default() -> Self {
+        Self {
+            dataset: String::new(),
+            split: Split::Train,
+            cache: true,
+            sampler: SamplerConfig::default(),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OptimSection {
+    pub batch_size: usize,
+    pub accumulate: usize,
+    pub clip_norm: f64,
+    pub schedule: LrSchedule,
+    pub adamw: AdamWConfig,
+}
+
+impl Default for OptimSection {
+    fn default() -> Self {
+        Self {
+            batch_size: 4,
+            accumulate: 1,
+            clip_norm: 1.0,
+            schedule: LrSchedule::default(),
+            adamw: AdamWConfig::default(),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LossSection {
+    /// λ of eq. 5 (paper: 0.2). 0 trains with L1 only and needs no VGG file.
+    pub perceptual_weight: f64,
+    /// torchvision VGG16 weights (safetensors) for the perceptual term.
+    pub vgg: Option<PathBuf>,
+}
+
+impl Default for LossSection {
+    fn default() -> Self {
+        Self {
+            perceptual_weight: 0.2,
+            vgg: None,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AugmentSection {
+    /// Corrupt C_T on the fly with the paper's App. C pipeline (`pixl_intrinsics::augment`).
+    pub enabled: bool,
+}
+
+impl Default for AugmentSection {
+    fn default() -> Self {
+        Self { enabled: true }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RunSection {
+    pub out_dir: PathBuf,
+    /// Train until this many optimiser steps have been taken.
+    pub steps: u64,
+    /// Seed of data order, crops, flips and C_T corruption.
+    pub seed: u64,
+    pub log_every: u64,
+    pub sample_every: u64,
+    pub checkpoint_every: u64,
+}
+
+impl Default for RunSection {
+    fn default() -> Self {
+        Self {
+            out_dir: PathBuf::from("runs/pixl"),
+            steps: 200_000,
+            seed: 0,
+            log_every: 10,
+            sample_every: 1000,
+            checkpoint_every: 1000,
+        }
+    }
+}
+
+impl TrainConfig {
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| TrainError::io(path, e))?;
+        let cfg: TrainConfig = toml::from_str(&text).map_err(|e| TrainError::File {
+            path: path.to_owned(),
+            reason: e.to_string(),
+        })?;
+        Ok(cfg)
+    }
+
+    pub fn to_toml(&self) -> Result<String> {
+        toml::to_string_pretty(self).map_err(|e| TrainError::Config(e.to_string()))
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        let bad = |m: &str| Err(TrainError::Config(m.to_string()));
+        if self.data.dataset.is_empty() {
+            return bad("[data] dataset is empty (e.g. dataset = \"synth:data/synth\")");
+        }
+        if self.optim.batch_size == 0 || self.optim.accumulate == 0 {
+            return bad("[optim] batch_size and accumulate must be at least 1");
+        }
+        if !(self.optim.clip_norm > 0.0) {
+            return bad("[optim] clip_norm must be positive");
+        }
+        if self.loss.perceptual_weight < 0.0 {
+            return bad("[loss] perceptual_weight must be >= 0");
+        }
+        if self.loss.perceptual_weight > 0.0 && self.loss.vgg.is_none() {
+            return bad(
+                "[loss] perceptual_weight > 0 needs VGG16 weights: set vgg = \"vgg16.safetensors\" (torchvision layout, \
+                 e.g. --vgg) or train with L1 only via perceptual_weight = 0 (--perceptual-weight 0)",
+            );
+        }
+        if self.run.checkpoint_every == 0 || self.run.log_every == 0 || self.run.sample_every == 0 {
+            return bad("[run] log_every, sample_every and checkpoint_every must be at least 1");
+        }
+        self.data.sampler.validate()
+    }
+}

@@ -1,0 +1,344 @@
+//! The training loop (paper §3.3, App. A): pairs from the [`Sampler`], C_T corrupted on the fly
+//! (App. C, per-sample seeds from `(seed, step, index)`), loss eq. 5, gradient accumulation over
+//! `accumulate` micro-batches, global-norm clipping, AdamW with the warm-up/cosine schedule.
+//!
+//! Outputs under `run.out_dir`: `log.jsonl` (one JSON object per logged step), `samples/
+//! step_<N>.png` grids (rows: samples; columns: source | albedo | shading | residual |
+//! prediction | target), `train-state.safetensors` (full resumable state, [`crate::state`]) and
+//! `model.safetensors` (weights only, loadable by `pixl_model::load`).
+//!
+//! Precision: f32 everywhere. The paper's bf16 compute with f32 master weights (CUDA) and
+//! per-block gradient checkpointing are not implemented (see the crate README / report).
+use crate::config::TrainConfig;
+use crate::data::sampler::{DiskLoader, Loader, Sample, Sampler};
+use crate::data::{self, SceneEntry};
+use crate::error::{Result, TrainError};
+use crate::loss::{loss, Perceptual};
+use crate::optim::{clip_global_norm, AdamW, LrSchedule};
+use crate::state::{self, Meta, State, MODEL_FILE, STATE_FILE};
+use candle_core::{Device, Tensor, Var};
+use candle_nn::VarMap;
+use pixl_core::{Image, Rng};
+use pixl_model::{Config, PixlRelight};
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+const STREAM_AUGMENT: u64 = 0xA06;
+
+/// What one optimiser step did.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct StepReport {
+    /// Steps completed after this one.
+    pub step: u64,
+    pub loss: f32,
+    pub l1: f32,
+    pub perceptual: Option<f32>,
+    pub lr: f64,
+    pub grad_norm: f64,
+    pub images_per_s: f64,
+}
+
+pub struct Trainer {
+    pub cfg: TrainConfig,
+    pub model_cfg: Config,
+    model: PixlRelight,
+    varmap: VarMap,
+    opt: AdamW,
+    sampler: Sampler,
+    loader: Box<dyn Loader>,
+    perceptual: Option<Perceptual>,
+    device: Device,
+    /// Optimiser steps completed.
+    pub step: u64,
+}
+
+fn vars_of(varmap: &VarMap) -> Result<BTreeMap<String, Var>> {
+    let data = varmap
+        .data()
+        .lock()
+        .map_err(|_| TrainError::Other("VarMap lock poisoned".into()))?;
+    Ok(data.iter().map(|(k, v)| (k.clone(), v.clone())).collect())
+}
+
+fn fingerprint(scenes: &[SceneEntry]) -> String {
+    let first = scenes.first().map(|s| s.name.as_str()).unwrap_or("");
+    let last = scenes.last().map(|s| s.name.as_str()).unwrap_or("");
+    format!("{}:{first}:{last}", scenes.len())
+}
+
+impl Trainer {
+    /// A fresh run over the dataset named in `cfg`, read from disk.
+    pub fn new(cfg: TrainConfig, device: &Device) -> Result<Self> {
+        cfg.validate()?;
+        let ds = data::open(&cfg.data.dataset, cfg.data.split)?;
+        let loader = Box::new(DiskLoader::new(cfg.data.cache));
+        Self::with_data(cfg, ds.scenes().to_vec(), loader, device)
+    }
+
+    /// A fresh run over given scenes and loader.
+    pub fn with_data(
+        cfg: TrainConfig,
+        scenes: Vec<SceneEntry>,
+        loader: Box<dyn Loader>,
+        device: &Device,
+    ) -> Result<Self> {
+        cfg.validate()?;
+        let model_cfg = Config::from_name_or_file(&cfg.model.preset)
+            .map_err(|e| TrainError::Config(format!("[model] preset: {e}")))?;
+        let (varmap, model) = pixl_model::build_trainable(&model_cfg, cfg.model.init_seed, device)?;
+        let opt = AdamW::new(vars_of(&varmap)?, cfg.optim.adamw.clone())?;
+        let sampler = Sampler::new(scenes, cfg.data.sampler.clone(), cfg.optim.batch_size, cfg.run.seed)?;
+        let perceptual = match (&cfg.loss.vgg, cfg.loss.perceptual_weight > 0.0) {
+            (Some(p), true) => Some(Perceptual::load(p, device)?),
+            _ => None,
+        };
+        if perceptual.is_none() {
+            tracing::info!("perceptual weight is 0: training with the L1 loss only");
+        }
+        Ok(Self {
+            cfg,
+            model_cfg,
+            model,
+            varmap,
+            opt,
+            sampler,
+            loader,
+            perceptual,
+            device: device.clone(),
+            step: 0,
+        })
+    }
+
+    /// Restores weights, optimiser moments and step from `out_dir/train-state.safetensors`.
+    pub fn restore(&mut self) -> Result<()> {
+        let path = self.state_path();
+        let st = state::load(&path, &self.device)?;
+        let mismatch = |what: &str, a: &str, b: &str| TrainError::File {
+            path: path.clone(),
+            reason: format!("checkpoint {what} {a:?} differs from this run's {b:?}; resume needs the same setup"),
+        };
+        let fp = fingerprint(self.sampler.scenes());
+        if st.meta.data_fingerprint != fp {
+            return Err(mismatch("data set", &st.meta.data_fingerprint, &fp));
+        }
+        if st.meta.seed != self.cfg.run.seed {
+            return Err(mismatch(
+                "seed",
+                &st.meta.seed.to_string(),
+                &self.cfg.run.seed.to_string(),
+            ));
+        }
+        if st.meta.model_config != self.model_cfg.to_json() {
+            return Err(mismatch("model config", "(stored)", &self.cfg.model.preset));
+        }
+        let get = |key: String| {
+            st.tensors.get(&key).cloned().ok_or_else(|| TrainError::File {
+                path: path.clone(),
+                reason: format!("tensor {key} missing"),
+            })
+        };
+        for p in self.opt.params.iter_mut() {
+            p.var.set(&get(format!("param.{}", p.name))?)?;
+            p.m = get(format!("adam_m.{}", p.name))?;
+            p.v = get(format!("adam_v.{}", p.name))?;
+        }
+        self.opt.steps = st.meta.optimizer_steps;
+        self.step = st.meta.step;
+        Ok(())
+    }
+
+    pub fn state_path(&self) -> PathBuf {
+        self.cfg.run.out_dir.join(STATE_FILE)
+    }
+
+    pub fn model_path(&self) -> PathBuf {
+        self.cfg.run.out_dir.join(MODEL_FILE)
+    }
+
+    pub fn model(&self) -> &PixlRelight {
+        &self.model
+    }
+
+    pub fn schedule(&self) -> &LrSchedule {
+        &self.cfg.optim.schedule
+    }
+
+    /// Writes the training state and the weights-only model file (both atomically).
+    pub fn save_checkpoint(&self) -> Result<()> {
+        std::fs::create_dir_all(&self.cfg.run.out_dir).map_err(|e| TrainError::io(&self.cfg.run.out_dir, e))?;
+        let mut tensors = BTreeMap::new();
+        for p in &self.opt.params {
+            tensors.insert(format!("param.{}", p.name), p.var.as_tensor().clone());
+            tensors.insert(format!("adam_m.{}", p.name), p.m.clone());
+            tensors.insert(format!("adam_v.{}", p.name), p.v.clone());
+        }
+        let meta = Meta {
+            format: state::FORMAT.into(),
+            step: self.step,
+            optimizer_steps: self.opt.steps,
+            seed: self.cfg.run.seed,
+            data_fingerprint: fingerprint(self.sampler.scenes()),
+            model_config: self.model_cfg.to_json(),
+        };
+        state::save(&self.state_path(), &State { meta, tensors })?;
+        pixl_model::save(&self.model_path(), &self.varmap, &self.model_cfg)?;
+        Ok(())
+    }
+
+    /// Stacks samples into `(src, target, ct)` tensors `(B,3,H,W)`, `(B,3,H,W)`, `(B,9,H,W)`.
+    pub fn to_tensors(samples: &[Sample], device: &Device) -> Result<(Tensor, Tensor, Tensor)> {
+        let (w, h) = (samples[0].source.width, samples[0].source.height);
+        let stack = |f: &dyn Fn(&Sample) -> &Image, c: usize| -> Result<Tensor> {
+            let data: Vec<f32> = samples.iter().flat_map(|s| f(s).to_chw()).collect();
+            Ok(Tensor::from_vec(data, (samples.len(), c, h, w), device)?)
+        };
+        Ok((
+            stack(&|s| &s.source, 3)?,
+            stack(&|s| &s.target, 3)?,
+            stack(&|s| &s.ct, 9)?,
+        ))
+    }
+
+    /// Per-sample corruption seeds of micro-batch `micro` of `step`.
+    fn augment_seeds(&self, micro_step: u64, n: usize) -> Vec<u64> {
+        (0..n)
+            .map(|i| Rng::for_stream(self.cfg.run.seed, &[STREAM_AUGMENT, micro_step, i as u64]).next_u64())
+            .collect()
+    }
+
+    /// One optimiser step (with `accumulate` micro-batches).
+    pub fn train_step(&mut self) -> Result<StepReport> {
+        let t0 = Instant::now();
+        let accum = self.cfg.optim.accumulate;
+        let lr = self.cfg.optim.schedule.lr(self.step);
+        let mut grads: Vec<Option<Tensor>> = vec![None; self.opt.params.len()];
+        let (mut loss_sum, mut l1_sum, mut perc_sum, mut images) = (0.0f32, 0.0f32, None::<f32>, 0usize);
+        for micro in 0..accum {
+            let micro_step = self.step * accum as u64 + micro as u64;
+            let samples = self.sampler.batch(micro_step, self.loader.as_ref())?;
+            images += samples.len();
+            let (src, tgt, mut ct) = Self::to_tensors(&samples, &self.device)?;
+            if self.cfg.augment.enabled {
+                let seeds = self.augment_seeds(micro_step, samples.len());
+                ct = pixl_intrinsics::augment::corrupt(&ct, &seeds, &pixl_intrinsics::augment::AugmentConfig::paper())?;
+            }
+            let pred = self.model.forward(&src, &ct)?;
+            let terms = loss(&pred, &tgt, self.perceptual.as_ref(), self.cfg.loss.perceptual_weight)?;
+            let total = (&terms.total / accum as f64)?;
+            loss_sum += total.to_scalar::<f32>()?;
+            l1_sum += terms.l1 / accum as f32;
+            if let Some(p) = terms.perceptual {
+                perc_sum = Some(perc_sum.unwrap_or(0.0) + p / accum as f32);
+            }
+            let store = total.backward()?;
+            for (acc, p) in grads.iter_mut().zip(&self.opt.params) {
+                if let Some(g) = store.get(p.var.as_tensor()) {
+                    *acc = Some(match acc.take() {
+                        None => g.clone(),
+                        Some(a) => (a + g)?,
+                    });
+                }
+            }
+        }
+        if !loss_sum.is_finite() {
+            return Err(TrainError::Other(format!(
+                "loss is {loss_sum} at step {}; stopping",
+                self.step
+            )));
+        }
+        let grad_norm = clip_global_norm(&mut grads, self.cfg.optim.clip_norm)?;
+        self.opt.step(&grads, lr)?;
+        self.step += 1;
+        let secs = t0.elapsed().as_secs_f64().max(1e-9);
+        Ok(StepReport {
+            step: self.step,
+            loss: loss_sum,
+            l1: l1_sum,
+            perceptual: perc_sum,
+            lr,
+            grad_norm,
+            images_per_s: images as f64 / secs,
+        })
+    }
+
+    /// A grid for the first samples of `step`: rows of source | albedo | shading | residual |
+    /// prediction | target (C_T shown as the network sees it, uncorrupted, clipped to [0, 1]).
+    pub fn sample_grid(&self, step: u64, rows: usize) -> Result<Image> {
+        let samples = self.sampler.batch(step, self.loader.as_ref())?;
+        let samples = &samples[..rows.min(samples.len()).max(1)];
+        let (src, _, ct) = Self::to_tensors(samples, &self.device)?;
+        let pred = self.model.forward(&src, &ct)?.to_dtype(candle_core::DType::F32)?;
+        let (w, h) = (samples[0].source.width, samples[0].source.height);
+        let mut grid_rows = Vec::new();
+        for (i, s) in samples.iter().enumerate() {
+            let p: Vec<f32> = pred.get(i)?.flatten_all()?.to_vec1()?;
+            let pred_img = Image::from_chw(w, h, 3, &p)?;
+            let clip = |img: Image| img.map(|v| v.clamp(0.0, 1.0));
+            let parts = [
+                s.source.clone(),
+                clip(s.ct.select_channels(0..3)),
+                clip(s.ct.select_channels(3..6)),
+                clip(s.ct.select_channels(6..9)),
+                pred_img,
+                s.target.clone(),
+            ];
+            grid_rows.push(Image::hstack(&parts.iter().collect::<Vec<_>>())?);
+        }
+        Ok(vstack(&grid_rows))
+    }
+
+    /// Trains until `cfg.run.steps`, logging, writing sample grids and checkpoints; `on_step` sees
+    /// every step (for a progress bar). A final checkpoint is written at the end.
+    pub fn run(&mut self, mut on_step: impl FnMut(&StepReport)) -> Result<()> {
+        let out = self.cfg.run.out_dir.clone();
+        std::fs::create_dir_all(out.join("samples")).map_err(|e| TrainError::io(&out, e))?;
+        let log_path = out.join("log.jsonl");
+        let mut log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&log_path)
+            .map_err(|e| TrainError::io(&log_path, e))?;
+        let start = serde_json::json!({"event": "start", "step": self.step, "l1_only": self.perceptual.is_none()});
+        writeln!(log, "{start}").map_err(|e| TrainError::io(&log_path, e))?;
+        while self.step < self.cfg.run.steps {
+            let report = self.train_step()?;
+            on_step(&report);
+            let s = report.step;
+            if s % self.cfg.run.log_every == 0 || s == self.cfg.run.steps {
+                let line = serde_json::to_string(&report).map_err(|e| TrainError::Other(e.to_string()))?;
+                writeln!(log, "{line}").map_err(|e| TrainError::io(&log_path, e))?;
+            }
+            if s % self.cfg.run.sample_every == 0 {
+                let grid = self.sample_grid(s, 4)?;
+                pixl_core::io::write_png(
+                    &out.join(format!("samples/step_{s:07}.png")),
+                    &grid,
+                    pixl_core::io::PngDepth::Eight,
+                )?;
+            }
+            if s % self.cfg.run.checkpoint_every == 0 {
+                self.save_checkpoint()?;
+            }
+        }
+        self.save_checkpoint()
+    }
+}
+
+fn vstack(rows: &[Image]) -> Image {
+    let w = rows.iter().map(|r| r.width).max().unwrap_or(0);
+    let ch = rows.first().map(|r| r.channels).unwrap_or(3);
+    let h: usize = rows.iter().map(|r| r.height).sum();
+    let mut out = Image::new(w, h, ch);
+    let mut y0 = 0;
+    for r in rows {
+        for y in 0..r.height {
+            let src = &r.data[y * r.width * ch..(y + 1) * r.width * ch];
+            let dst = ((y0 + y) * w) * ch;
+            out.data[dst..dst + src.len()].copy_from_slice(src);
+        }
+        y0 += r.height;
+    }
+    out
+}
