@@ -9,14 +9,15 @@ pub enum EvalError {
     Metric(#[from] crate::metrics::MetricError),
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
+    // Foreign errors are boxed: they are large and would make every `Result` here large.
     #[error(transparent)]
-    Core(#[from] pixl_core::CoreError),
+    Core(Box<pixl_core::CoreError>),
     #[error(transparent)]
-    Data(#[from] pixl_train::TrainError),
+    Data(Box<pixl_train::TrainError>),
     #[error(transparent)]
-    Checkpoint(#[from] pixl_model::CheckpointError),
+    Checkpoint(Box<pixl_model::CheckpointError>),
     #[error(transparent)]
-    Lpips(#[from] crate::lpips::LpipsError),
+    Lpips(Box<crate::lpips::LpipsError>),
     #[error("{path}, line {line}: {reason}")]
     Pairs { path: PathBuf, line: usize, reason: String },
     #[error("pair {scene}/{source_name} -> {target}: {reason}")]
@@ -33,3 +34,19 @@ pub enum EvalError {
     #[error("nothing to evaluate: {0}")]
     Empty(String),
 }
+
+macro_rules! boxed_from {
+    ($($variant:ident: $ty:ty),*) => {$(
+        impl From<$ty> for EvalError {
+            fn from(e: $ty) -> Self {
+                EvalError::$variant(Box::new(e))
+            }
+        }
+    )*};
+}
+boxed_from!(
+    Core: pixl_core::CoreError,
+    Data: pixl_train::TrainError,
+    Checkpoint: pixl_model::CheckpointError,
+    Lpips: crate::lpips::LpipsError
+);
