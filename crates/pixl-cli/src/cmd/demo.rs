@@ -2,14 +2,19 @@
 //!
 //! 1. The bundled scene (`assets/demo/scene.toml`, compiled into the binary) is path-traced under
 //!    its own light: that render is the *source photograph* `I_S`.
-//! 2. For each of the paper's five presets (§4.2) the scene's lights are replaced by the preset,
-//!    the native path tracer renders the Cycles passes, and `C_T` is composed from them exactly as
-//!    `pixl compose` does (App. B).
-//! 3. The network relights `I_S` under `C_T`. Weights: `--weights`, else the bundled demo
+//! 2. As at the paper's inference (§3.4), the source is turned into a *coarse* scene: its depth
+//!    pass is unprojected into a triangle mesh (`pixl reconstruct`'s code, discontinuities cut)
+//!    and its diffuse-colour pass becomes the mesh's albedo texture — standing in for the depth
+//!    and material estimators. (`--exact-intrinsics` skips this and uses the true scene.)
+//! 3. For each of the paper's five presets (§4.2) the preset's lights (placed from the true
+//!    scene's bounds) light the coarse scene, the native path tracer renders the Cycles passes,
+//!    and `C_T` is composed from them exactly as `pixl compose` does (App. B).
+//! 4. The network relights `I_S` under `C_T`. Weights: `--weights`, else the bundled demo
 //!    weights (`assets/demo-weights/pixl-tiny-synth.safetensors`) when present, else a freshly
 //!    initialised `tiny` network — which returns the source unchanged, and the report says so.
-//! 4. Because the scene is synthetic, the preset render *is* the ground truth: each relit image
-//!    gets PSNR / SSIM against it (and the source gets the same, as the identity baseline).
+//! 5. Because the scene is synthetic, the true scene rendered under the preset is the ground
+//!    truth: each relit image gets PSNR / SSIM against it (and the source gets the same, as the
+//!    identity baseline).
 //!
 //! Output: PNGs per preset and one self-contained `report.html` (images inlined).
 use crate::report::{Panel, Report, Row};
@@ -43,6 +48,9 @@ pub struct Args {
     /// A scene file to use instead of the bundled one.
     #[arg(long)]
     pub scene: Option<PathBuf>,
+    /// Compose C_T from the true scene instead of a coarse reconstruction of the source.
+    #[arg(long)]
+    pub exact_intrinsics: bool,
     /// Print the metrics as JSON on stdout.
     #[arg(long)]
     pub json: bool,
@@ -115,6 +123,11 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     pixl_core::io::write_png(&args.out.join("source.png"), &source, pixl_core::io::PngDepth::Eight)?;
     pb.inc(1);
 
+    let coarse = if args.exact_intrinsics {
+        None
+    } else {
+        Some(reconstruct(&source_film, &scene, &args.out.join("reconstruction"))?)
+    };
     let src_t = to_tensor(&source, &dev)?;
     let mut rows = Vec::new();
     let mut json_rows = Vec::new();
@@ -122,12 +135,22 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         let mut lit = scene.clone();
         apply_preset(&mut lit, preset, true)?;
         let film = render(&lit, &opts, &no_progress)?;
-        let passes = PassSet::from_exr_channels(&film.to_exr_channels(), None)?;
+        let truth = film.combined_srgb();
+        // The passes C_T is composed from: the coarse reconstruction under the same lights.
+        let authored = match &coarse {
+            Some(c) => {
+                let mut c = c.clone();
+                c.lights = lit.lights.clone();
+                render(&c, &opts, &no_progress)?
+            }
+            None => film,
+        };
+        let path_traced = authored.combined_srgb();
+        let passes = PassSet::from_exr_channels(&authored.to_exr_channels(), None)?;
         let composed = compose(&passes, &ComposeOptions::default())?;
         let ct = composed.ct;
         let ct_t = Tensor::from_vec(ct.to_chw(), (1, 9, ct.height(), ct.width()), &dev)?;
         let relit = from_tensor(&model.forward(&src_t, &ct_t)?)?;
-        let truth = film.combined_srgb();
         let dir = args.out.join(preset);
         std::fs::create_dir_all(&dir)?;
         let shown_s = ct.shading.map(|v| pixl_core::image::linear_to_srgb(v));
@@ -135,7 +158,8 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         let shown_a = ct.albedo.map(|v| pixl_core::image::linear_to_srgb(v));
         for (name, img) in [
             ("relit", &relit),
-            ("path_traced", &truth),
+            ("path_traced", &path_traced),
+            ("ground_truth", &truth),
             ("albedo", &shown_a),
             ("shading", &shown_s),
             ("residual", &shown_r),
@@ -154,7 +178,7 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
             title: preset.to_string(),
             panels: vec![
                 Panel::new("source", &source, Some(m_source.caption())),
-                Panel::new("path-traced render", &truth, None),
+                Panel::new("path-traced render", &path_traced, None),
                 Panel::new("albedo A", &shown_a, None),
                 Panel::new("shading S", &shown_s, None),
                 Panel::new("residual R", &shown_r, None),
@@ -195,6 +219,51 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         ctx.say(format!("wrote {}", html_path.display()));
     }
     Ok(())
+}
+
+/// A coarse scene from the source render alone, as the paper's inference builds one from a
+/// photo: depth → mesh in world space (via the camera), diffuse colour → albedo texture. Files
+/// go to `dir`; the returned scene has no lights.
+fn reconstruct(source: &pixl_render::Film, scene: &Scene, dir: &Path) -> Result<Scene> {
+    use pixl_render::depth::{depth_to_mesh, DepthMap, Intrinsics, MeshOptions};
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    let depth = source.pass("Depth").context("the source render has no Depth pass")?;
+    let albedo = source
+        .pass("DiffCol")
+        .context("the source render has no DiffCol pass")?;
+    let (w, h) = (depth.width, depth.height);
+    let intr = Intrinsics::from_focal_px(w, h, scene.camera.focal_for_height(h as u32) as f64)?;
+    let mesh = depth_to_mesh(&DepthMap::new(w, h, depth.data)?, &intr, None, &MeshOptions::default())?;
+    pixl_render::export::ply::write_ply(&dir.join("mesh.ply"), &mesh)?;
+    let texture = albedo.map(|v| pixl_core::image::linear_to_srgb(v.clamp(0.0, 1.0)));
+    pixl_core::io::write_png(&dir.join("albedo.png"), &texture, pixl_core::io::PngDepth::Sixteen)?;
+    let (o, r, u, b) = scene.camera.frame();
+    let cam_to_world = [
+        [r[0], u[0], b[0], o[0]],
+        [r[1], u[1], b[1], o[1]],
+        [r[2], u[2], b[2], o[2]],
+        [0.0, 0.0, 0.0, 1.0],
+    ];
+    let mut coarse = Scene::new(scene.camera.clone());
+    coarse.world = scene.world.clone();
+    coarse.base_dir = dir.to_owned();
+    coarse.objects.push(pixl_render::Object {
+        name: "reconstruction".into(),
+        shape: pixl_render::Shape::Mesh {
+            path: "mesh.ply".into(),
+        },
+        transform: pixl_render::Transform {
+            matrix: Some(cam_to_world),
+            ..Default::default()
+        },
+        material: pixl_render::Material {
+            base_color_texture: Some("albedo.png".into()),
+            roughness: 0.5,
+            ..Default::default()
+        },
+    });
+    coarse.save(&dir.join("scene.toml"))?;
+    Ok(coarse)
 }
 
 struct Metrics {
