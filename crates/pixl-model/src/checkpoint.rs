@@ -184,6 +184,29 @@ pub fn build_trainable(cfg: &Config, seed: u64, device: &Device) -> Result<(VarM
     Ok((varmap, model))
 }
 
+/// An inference copy of a trainable network: the `VarMap`'s current values as plain tensors
+/// (copied and detached, so later training steps do not change it and pixl-nn takes its fast
+/// paths) of `dtype` on `device`. Use it to evaluate or
+/// benchmark a network built by [`build_trainable`]; the `Var`-backed model runs the slower
+/// differentiable paths.
+pub fn freeze(cfg: &Config, varmap: &VarMap, dtype: DType, device: &Device) -> Result<PixlRelight> {
+    let tensors: HashMap<String, Tensor> = {
+        let data = varmap
+            .data()
+            .lock()
+            .map_err(|_| candle_core::Error::Msg("VarMap lock poisoned".into()))?;
+        let mut out = HashMap::with_capacity(data.len());
+        for (k, v) in data.iter() {
+            out.insert(
+                k.clone(),
+                v.as_tensor().copy()?.detach().to_device(device)?.to_dtype(dtype)?,
+            );
+        }
+        out
+    };
+    Ok(PixlRelight::new(cfg, VarBuilder::from_tensors(tensors, dtype, device))?)
+}
+
 /// Saves the `VarMap` of a network built with `cfg` (see [`save_tensors`]).
 pub fn save(path: &Path, varmap: &VarMap, cfg: &Config) -> Result<()> {
     let tensors: HashMap<String, Tensor> = {

@@ -17,6 +17,8 @@ pub mod modulation;
 pub mod trunk;
 pub mod vit;
 
-pub use checkpoint::{build_trainable, load, load_into_varmap, read_config, save, save_tensors, CheckpointError};
+pub use checkpoint::{
+    build_trainable, freeze, load, load_into_varmap, read_config, save, save_tensors, CheckpointError,
+};
 pub use config::{Config, ConfigError};
 pub use model::PixlRelight;
