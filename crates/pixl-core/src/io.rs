@@ -159,6 +159,18 @@ fn read_ldr(path: &Path) -> Result<Image> {
             .with_guessed_format()
             .map_err(|e| CoreError::io(path, e))
     };
+    // PNG: the IHDR chunk (bytes 16..24) holds the size; check it before the decoder reads on.
+    let mut head = [0u8; 24];
+    let got = {
+        use std::io::Read;
+        let mut f = File::open(path).map_err(|e| CoreError::io(path, e))?;
+        f.read(&mut head).map_err(|e| CoreError::io(path, e))?
+    };
+    if got == 24 && head.starts_with(b"\x89PNG\r\n\x1a\n") && &head[12..16] == b"IHDR" {
+        let w = u32::from_be_bytes([head[16], head[17], head[18], head[19]]);
+        let h = u32::from_be_bytes([head[20], head[21], head[22], head[23]]);
+        check_size(path, w as usize, h as usize)?;
+    }
     let (w, h) = open()?.into_dimensions().map_err(decode)?;
     check_size(path, w as usize, h as usize)?;
     let mut reader = open()?;
