@@ -1,9 +1,42 @@
-//! `pixl blender` (placeholder until its issue lands).
+//! `pixl blender export scene.toml -o scene.py`: the Blender bridge (issue 4, part 5). The script
+//! rebuilds the scene in Blender and renders Cycles' passes into a multilayer EXR; see
+//! `pixl_render::blender` for the mapping. Run it with
+//! `blender -b -P scene.py -- --out passes.exr --spp N` or `python scene.py --out passes.exr --spp N`.
 use crate::Ctx;
+use std::path::PathBuf;
 
 #[derive(clap::Subcommand, Debug)]
-pub enum Command {}
+pub enum Command {
+    /// Write a Blender Python script (+ a `<name>_data/` folder of meshes and textures beside it).
+    Export(ExportArgs),
+}
 
-pub fn run(command: Command, _ctx: &Ctx) -> anyhow::Result<()> {
-    match command {}
+#[derive(clap::Args, Debug)]
+pub struct ExportArgs {
+    /// The scene (.toml or .json).
+    pub scene: PathBuf,
+    /// The script to write (.py).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+}
+
+pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
+    match command {
+        Command::Export(a) => {
+            if pixl_core::io::extension(&a.out) != "py" {
+                anyhow::bail!("{}: the script must have the extension .py", a.out.display());
+            }
+            let scene = pixl_render::Scene::load(&a.scene)?;
+            let e = pixl_render::blender::export_blender(&scene, &a.out)?;
+            ctx.say(format!(
+                "wrote {} ({} meshes, {} textures in {}); run: blender -b -P {} -- --out passes.exr --spp 64",
+                e.script.display(),
+                e.meshes,
+                e.textures,
+                e.data_dir.display(),
+                e.script.display()
+            ));
+            Ok(())
+        }
+    }
 }
