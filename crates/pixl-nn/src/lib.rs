@@ -1,17 +1,19 @@
 //! `pixl-nn`: the project's own small layer over candle, covering what candle lacks.
 //!
 //! candle's fast inference kernels (`candle_nn::ops::layer_norm`, `softmax_last_dim`, `sdpa`,
-//! `upsample_bilinear2d`) have no backward pass: gradients silently stop at them. Every op here
+//! `upsample_bilinear2d`) have no backward pass: gradients silently stop at the first three,
+//! and the last fails in `backward()`. Every op here
 //! dispatches on [`needs_grad`]: when any input tracks gradients (a `Var` or derived from one) it
 //! takes a differentiable path built from candle primitives; otherwise it takes the fast path.
 //! So inference is fast and training is correct, with no mode flag to forget.
 //!
-//! - [`norm`]: layer norm (last dim) and channel-first layer norm for ConvNeXt.
-//! - [`ops`]: softmax, bilinear resize, GELU.
-//! - [`rope`]: 2D rotary position embedding.
-//! - [`mlp`]: Linear–GELU–Linear.
-//! - [`dwconv`]: depthwise k×k convolution with its own forward and backward kernels.
-//! - [`attention`]: multi-head scaled-dot-product attention.
+//! - [`norm`] — layer norm (last dim) and channel-first layer norm for ConvNeXt.
+//! - [`ops`] — softmax, bilinear resize, GELU.
+//! - [`rope`] — 2D rotary position embedding.
+//! - [`mlp`] — Linear–GELU–Linear.
+//! - [`dwconv`] — depthwise k×k convolution with its own forward and backward kernels.
+//! - [`attention`] — multi-head scaled-dot-product attention.
+//! - [`testing`] — seeded test tensors and an f64 finite-difference gradient check.
 pub mod attention;
 pub mod backbones;
 pub mod dwconv;

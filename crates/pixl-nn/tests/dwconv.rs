@@ -4,13 +4,20 @@ use candle_core::{DType, Device, Result, Tensor, Var};
 use pixl_nn::dwconv::{depthwise_conv2d, grouped_conv2d};
 use pixl_nn::testing::{assert_gradients, max_abs_diff, uniform};
 
-/// `(b, c, h, w, k)` shapes: odd sizes, kernels 3 and 7, a kernel wider than the image, batch > 1.
-const SHAPES: [(usize, usize, usize, usize, usize); 5] = [
+/// `(b, c, h, w, k)` shapes: odd sizes, kernels 3 to 9, a kernel wider than the image, batch > 1.
+/// Widths ≥ 16 (multiple of 16 or not) take the register-blocked kernel for k = 3, 5, 7; k = 9
+/// and narrow rows the general one.
+const SHAPES: [(usize, usize, usize, usize, usize); 10] = [
     (2, 3, 5, 7, 3),
     (2, 2, 9, 6, 7),
     (1, 4, 11, 13, 7),
     (3, 1, 4, 3, 7),
     (1, 2, 1, 1, 3),
+    (2, 3, 9, 37, 7),
+    (1, 2, 5, 16, 3),
+    (2, 2, 4, 21, 5),
+    (1, 2, 3, 33, 7),
+    (1, 2, 6, 19, 9),
 ];
 
 struct Naive {
@@ -23,7 +30,7 @@ struct Naive {
 /// Direct loops over the definition: `y[b,c,i,j] = bias[c] + Σ w[c,u,v] x[b,c,i+u-p,j+v-p]`, and
 /// for an upstream gradient `g`, `gx[.., i+u-p, j+v-p] += w[c,u,v] g[b,c,i,j]`,
 /// `gw[c,u,v] += x[.., i+u-p, j+v-p] g[b,c,i,j]`, `gb[c] += g[b,c,i,j]`.
-#[allow(clippy::too_many_arguments)]
+#[allow(clippy::needless_range_loop)] // index loops mirror the formula
 fn naive(
     x: &[f64],
     w: &[f64],
@@ -121,7 +128,7 @@ fn forward_and_gradients_match_naive_loops_f64() -> Result<()> {
 
 #[test]
 fn f32_forward_and_gradients_match_naive_loops() -> Result<()> {
-    let s = (2, 3, 10, 9, 7);
+    let s = (2, 3, 10, 41, 7);
     let [x, w, b, g] = inputs(s, 77)?;
     let reference = naive(&vec(&x)?, &vec(&w)?, &vec(&b)?, &vec(&g)?, s);
     let f = |t: &Tensor| t.to_dtype(DType::F32);
@@ -143,7 +150,7 @@ fn f32_forward_and_gradients_match_naive_loops() -> Result<()> {
 
 #[test]
 fn matches_candle_grouped_conv_and_handles_half_precision() -> Result<()> {
-    let s = (2, 5, 12, 8, 7);
+    let s = (2, 5, 12, 24, 7);
     let [x, w, b, _] = inputs(s, 5)?;
     let ours = depthwise_conv2d(&x, &w, &b)?;
     let theirs = grouped_conv2d(&x, &w, &b)?;

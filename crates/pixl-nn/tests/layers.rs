@@ -325,8 +325,8 @@ fn naive_attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Vec<f64>> {
                 .collect();
             let mx = s.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
             let z: f64 = s.iter().map(|x| (x - mx).exp()).sum();
-            for j in 0..m {
-                let p = (s[j] - mx).exp() / z;
+            for (j, sj) in s.iter().enumerate() {
+                let p = (sj - mx).exp() / z;
                 for e in 0..dv {
                     out[(bh * n + i) * dv + e] += p * v[(bh * m + j) * dv + e];
                 }
