@@ -20,7 +20,9 @@ fn npy_f32(path: &Path, h: usize, w: usize, vals: &[f32]) {
 }
 
 fn photo(path: &Path, w: u32, h: u32) {
-    image::RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 20) as u8, (y * 30) as u8, 128])).save(path).unwrap();
+    image::RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 20) as u8, (y * 30) as u8, 128]))
+        .save(path)
+        .unwrap();
 }
 
 #[test]
@@ -59,7 +61,10 @@ fn reconstructs_a_step_into_a_loadable_scene() {
             let d = -p[2];
             let px = 0.5 * w as f32 + f * p[0] / d;
             let py = 0.5 * h as f32 - f * p[1] / d;
-            assert!((px / w as f32 - uv[0]).abs() < 1e-5 && (py / h as f32 - uv[1]).abs() < 1e-5, "{fmt}: {p:?} {uv:?}");
+            assert!(
+                (px / w as f32 - uv[0]).abs() < 1e-5 && (py / h as f32 - uv[1]).abs() < 1e-5,
+                "{fmt}: {p:?} {uv:?}"
+            );
         }
         assert!(out.join("photo.png").exists());
     }
