@@ -184,6 +184,19 @@ pub fn build_trainable(cfg: &Config, seed: u64, device: &Device) -> Result<(VarM
     Ok((varmap, model))
 }
 
+/// The network [`build_trainable`] would build from `seed` (bitwise the same values), as plain
+/// tensors of `dtype` for inference and benchmarks: half the memory (no `VarMap`), fast paths.
+pub fn build_inference(cfg: &Config, seed: u64, dtype: DType, device: &Device) -> Result<PixlRelight> {
+    let mut tensors = HashMap::new();
+    for (name, shape) in param_shapes(cfg)? {
+        let mut rng = pixl_core::Rng::for_stream(seed, &[fnv1a(&name)]);
+        let n = shape.iter().product();
+        let values = init_values(init_rule(&name, &shape, cfg), n, &mut rng);
+        tensors.insert(name, Tensor::from_vec(values, shape, device)?.to_dtype(dtype)?);
+    }
+    Ok(PixlRelight::new(cfg, VarBuilder::from_tensors(tensors, dtype, device))?)
+}
+
 /// An inference copy of a trainable network: the `VarMap`'s current values as plain tensors
 /// (copied and detached, so later training steps do not change it and pixl-nn takes its fast
 /// paths) of `dtype` on `device`. Use it to evaluate or

@@ -5,9 +5,9 @@
 //! (ConvNeXt over `C_T`), `trunk` (self-attention blocks with registers and 2D RoPE) and `head`
 //! (DPT). `dim` (the paper's `d`) is shared by the ViT, the fused tokens and the trunk.
 //!
-//! Presets: [`Config::paper`] (ViT-L + ConvNeXt-B + 24-block trunk, ≈ 727 M parameters with our
-//! DPT head; the paper says ≈ 640 M, see the crate README), [`Config::small`] (≈ 29 M) and
-//! [`Config::tiny`] (≈ 0.7 M, tests and CPU training). Readouts of the smaller presets are spread
+//! Presets: [`Config::paper`] (ViT-L + ConvNeXt-B + 24-block trunk, 726.4 M parameters with our
+//! DPT head; the paper says ≈ 640 M, see the crate README), [`Config::small`] (33.3 M) and
+//! [`Config::tiny`] (0.73 M, tests and CPU training). Readouts of the smaller presets are spread
 //! over depth as the paper's `{4, 11, 17, 23}` are over 24 blocks ([`spread_readouts`]).
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -148,7 +148,7 @@ impl Config {
         }
     }
 
-    /// About 29 M parameters: d = 384, 6-block ViT, 8-block trunk, a 1/1/3/1 ConvNeXt.
+    /// About 33 M parameters: d = 384, 6-block ViT, 8-block trunk, a 1/1/3/1 ConvNeXt.
     pub fn small() -> Self {
         Self {
             dim: 384,

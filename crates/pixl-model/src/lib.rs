@@ -18,7 +18,7 @@ pub mod trunk;
 pub mod vit;
 
 pub use checkpoint::{
-    build_trainable, freeze, load, load_into_varmap, read_config, save, save_tensors, CheckpointError,
+    build_inference, build_trainable, freeze, load, load_into_varmap, read_config, save, save_tensors, CheckpointError,
 };
 pub use config::{Config, ConfigError};
 pub use model::PixlRelight;

@@ -82,6 +82,20 @@ impl PixlRelight {
 
     /// The unclipped gain and bias maps `(B, 3, H, W)` each, f32 (for inspection and tests).
     pub fn gain_bias(&self, src: &Tensor, ct: &Tensor) -> Result<(Tensor, Tensor)> {
+        let (_b, _c, h, w) = src.dims4()?;
+        let (g, bias) = self.modulation.gain_bias(&self.padded_features(src, ct)?)?;
+        let crop = |t: Tensor| -> Result<Tensor> { t.narrow(2, 0, h)?.narrow(3, 0, w) };
+        Ok((crop(g)?, crop(bias)?))
+    }
+
+    /// The DPT map `F` `(B, C', H, W)` fed to the modulation conv, cropped to the input size.
+    pub fn features(&self, src: &Tensor, ct: &Tensor) -> Result<Tensor> {
+        let (_b, _c, h, w) = src.dims4()?;
+        self.padded_features(src, ct)?.narrow(2, 0, h)?.narrow(3, 0, w)
+    }
+
+    /// `F` at the padded size `(B, C', 16⌈H/16⌉, 16⌈W/16⌉)`.
+    fn padded_features(&self, src: &Tensor, ct: &Tensor) -> Result<Tensor> {
         let (b, c, h, w) = src.dims4()?;
         let (cb, cc, ch, cw) = ct.dims4()?;
         if c != 3 || cc != 9 || (b, h, w) != (cb, ch, cw) {
@@ -102,9 +116,6 @@ impl PixlRelight {
         let cond_tokens = self.cond_encoder.forward(&ct_p)?;
         let tokens = self.fuse.forward(&src_tokens, &cond_tokens)?;
         let readouts = self.trunk.forward(&tokens, gh, gw)?;
-        let features = self.head.forward(&readouts, ph, pw)?;
-        let (g, bias) = self.modulation.gain_bias(&features)?;
-        let crop = |t: Tensor| -> Result<Tensor> { t.narrow(2, 0, h)?.narrow(3, 0, w) };
-        Ok((crop(g)?, crop(bias)?))
+        self.head.forward(&readouts, ph, pw)
     }
 }

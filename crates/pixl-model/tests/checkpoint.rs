@@ -92,6 +92,18 @@ fn save_then_load_gives_identical_outputs() {
     load_into_varmap(&path, &vm2).unwrap();
     let after = to_vec(&model2.forward(&src, &ct).unwrap());
     assert!(after == t, "resumed VarMap differs: max diff {}", max_diff(&after, &t));
+    // build_inference gives the same network as build_trainable + freeze
+    let (vm3, _) = build_trainable(&cfg, 12, &Device::Cpu).unwrap();
+    let frozen = pixl_model::freeze(&cfg, &vm3, DType::F32, &Device::Cpu).unwrap();
+    let direct = pixl_model::build_inference(&cfg, 12, DType::F32, &Device::Cpu).unwrap();
+    let ff = to_vec(&frozen.features(&src, &ct).unwrap());
+    let fd = to_vec(&direct.features(&src, &ct).unwrap());
+    assert!(ff.iter().any(|v| *v > 0.0), "features are all zero");
+    assert!(
+        ff == fd,
+        "build_inference differs from freeze: max diff {}",
+        max_diff(&ff, &fd)
+    );
     // bf16 inference still returns the source exactly when the output conv is zero
     let (fresh_vm, _) = build_trainable(&cfg, 8, &Device::Cpu).unwrap();
     let p2 = dir.path().join("fresh.safetensors");

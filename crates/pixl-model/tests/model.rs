@@ -232,7 +232,7 @@ fn analytic_count_matches_the_built_network() {
 }
 
 #[test]
-#[ignore = "slow: builds and runs the ~29 M parameter `small` network"]
+#[ignore = "slow: builds and runs the ~33 M parameter `small` network"]
 fn small_fresh_network_returns_the_source() {
     let (_vm, model) = build_trainable(&Config::small(), 1, &Device::Cpu).unwrap();
     let mut rng = Rng::new(1);

@@ -78,9 +78,7 @@ fn bench_model(args: ModelArgs, ctx: &Ctx) -> anyhow::Result<()> {
     let cfg = Config::from_name_or_file(&args.config)?;
     let device = Device::Cpu;
     let dtype: DType = args.dtype.into();
-    let (varmap, _) = pixl_model::build_trainable(&cfg, 0, &device)?;
-    let model = pixl_model::freeze(&cfg, &varmap, dtype, &device)?;
-    drop(varmap);
+    let model = pixl_model::build_inference(&cfg, 0, dtype, &device)?;
     let (w, h) = args.size;
     let mut rng = Rng::new(1);
     let mut rand = |c: usize| -> candle_core::Result<Tensor> {
