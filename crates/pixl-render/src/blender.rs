@@ -154,7 +154,8 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
             "base_color": m.base_color.rgb(), "base_color_texture": tex(&m.base_color_texture)?,
             "roughness": m.roughness, "roughness_texture": tex(&m.roughness_texture)?,
             "metallic": m.metallic, "metallic_texture": tex(&m.metallic_texture)?,
-            "transmission": m.transmission, "ior": m.ior,
+            "transmission": m.transmission,
+            "specular_ior_level": m.specular_ior_level, "ior": m.ior,
             "emission_color": m.emission_color.rgb(), "emission_strength": m.emission_strength,
         });
         let name = if obj.name.is_empty() {
@@ -371,6 +372,7 @@ def make_material(name, m):
     bsdf.inputs["Metallic"].default_value = m["metallic"]
     bsdf.inputs["Transmission Weight"].default_value = m["transmission"]
     bsdf.inputs["IOR"].default_value = m["ior"]
+    bsdf.inputs["Specular IOR Level"].default_value = m.get("specular_ior_level", 0.5)
     bsdf.inputs["Emission Color"].default_value = (*m["emission_color"], 1.0)
     bsdf.inputs["Emission Strength"].default_value = m["emission_strength"]
     for key, socket, non_color in (("base_color_texture", "Base Color", False),
