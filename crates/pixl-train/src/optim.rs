@@ -116,15 +116,18 @@ impl AdamW {
         let (bc1, bc2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
         for (p, g) in self.params.iter_mut().zip(grads) {
             let Some(g) = g else { continue };
-            let m = ((&p.m * b1)? + (g * (1.0 - b1))?)?;
-            let v = ((&p.v * b2)? + (g.sqr()? * (1.0 - b2))?)?;
-            let mut theta = p.var.as_tensor().clone();
+            // Detached: the optimiser's arithmetic must not join the autograd graph, or every
+            // step would keep the previous steps' tensors alive through m, v and θ.
+            let g = g.detach();
+            let m = ((&p.m * b1)? + (&g * (1.0 - b1))?)?.detach();
+            let v = ((&p.v * b2)? + (g.sqr()? * (1.0 - b2))?)?.detach();
+            let mut theta = p.var.as_tensor().detach();
             if p.decay && self.cfg.weight_decay != 0.0 {
                 theta = (theta * (1.0 - lr * self.cfg.weight_decay))?;
             }
             let denom = ((&v / bc2)?.sqrt()? + self.cfg.eps)?;
             let update = ((&m / bc1)? / denom)?;
-            p.var.set(&(theta - (update * lr)?)?)?;
+            p.var.set(&(theta - (update * lr)?)?.detach())?;
             p.m = m;
             p.v = v;
         }

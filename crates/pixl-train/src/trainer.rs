@@ -235,9 +235,10 @@ impl Trainer {
             let store = total.backward()?;
             for (acc, p) in grads.iter_mut().zip(&self.opt.params) {
                 if let Some(g) = store.get(p.var.as_tensor()) {
+                    let g = g.detach();
                     *acc = Some(match acc.take() {
-                        None => g.clone(),
-                        Some(a) => (a + g)?,
+                        None => g,
+                        Some(a) => (a + g)?.detach(),
                     });
                 }
             }

@@ -1,0 +1,100 @@
+//! `pixl synth` and `pixl train` end to end on the real binary: a tiny synthetic set, a few
+//! training steps (L1 only), resume, and the refusal to start without VGG weights.
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn pixl(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pixl"))
+        .args(args)
+        .output()
+        .expect("run pixl")
+}
+
+fn config(dir: &Path, steps: u64, perceptual: f64) -> std::path::PathBuf {
+    let text = format!(
+        "[model]\npreset = \"tiny\"\n[data]\ndataset = \"synth:{data}\"\nsplit = \"train\"\n[data.sampler]\nlong_side = 32\n\
+         [optim]\nbatch_size = 1\n[optim.schedule]\npeak_lr = 1e-3\nwarmup_steps = 1\ntotal_steps = 10\n\
+         [loss]\nperceptual_weight = {perceptual}\n[run]\nout_dir = \"{out}\"\nsteps = {steps}\ncheckpoint_every = 2\nsample_every = 2\nlog_every = 1\n",
+        data = dir.join("synth").display(),
+        out = dir.join("run").display()
+    );
+    let p = dir.join(format!("train-{steps}-{perceptual}.toml"));
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+#[test]
+fn synth_then_train_then_resume() {
+    let dir = tempfile::tempdir().unwrap();
+    let synth = dir.path().join("synth");
+    let out = pixl(&[
+        "-q",
+        "synth",
+        "--scenes",
+        "2",
+        "--lights",
+        "2",
+        "--size",
+        "32",
+        "--spp",
+        "2",
+        "--test-every",
+        "2",
+        "-o",
+        synth.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(synth.join("scenes.json")).unwrap()).unwrap();
+    assert_eq!(manifest["scenes"].as_array().unwrap().len(), 2);
+    assert_eq!(manifest["scenes"][1]["split"], "test");
+    for f in [
+        "scene0000/light_0.png",
+        "scene0000/light_1.intrinsics.exr",
+        "scene0001/light_1.png",
+    ] {
+        assert!(synth.join(f).is_file(), "{f}");
+    }
+    // the exact C_T is a valid C_T file of the image's size
+    let ct = pixl_intrinsics::ct::read_ct(&synth.join("scene0000/light_0.intrinsics.exr")).unwrap();
+    assert_eq!((ct.width(), ct.height()), (32, 32));
+
+    let out = pixl(&["-q", "train", "--config", config(dir.path(), 2, 0.0).to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let run = dir.path().join("run");
+    assert!(run.join("model.safetensors").is_file() && run.join("train-state.safetensors").is_file());
+    assert!(run.join("samples/step_0000002.png").is_file());
+    // a second fresh start into the same directory is refused; --resume continues
+    let again = pixl(&["-q", "train", "--config", config(dir.path(), 4, 0.0).to_str().unwrap()]);
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("--resume"));
+    let resumed = pixl(&[
+        "-q",
+        "train",
+        "--resume",
+        "--config",
+        config(dir.path(), 4, 0.0).to_str().unwrap(),
+    ]);
+    assert!(resumed.status.success(), "{}", String::from_utf8_lossy(&resumed.stderr));
+    let log = std::fs::read_to_string(run.join("log.jsonl")).unwrap();
+    let steps: Vec<u64> = log
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()?["step"].as_u64())
+        .collect();
+    assert_eq!(steps, [0, 1, 2, 2, 3, 4], "start events then one line per step:\n{log}");
+    let (_, _model) = pixl_model::load(
+        &run.join("model.safetensors"),
+        &candle_core::Device::Cpu,
+        candle_core::DType::F32,
+    )
+    .unwrap();
+}
+
+#[test]
+fn perceptual_loss_without_vgg_refuses_to_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = pixl(&["-q", "train", "--config", config(dir.path(), 2, 0.2).to_str().unwrap()]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--perceptual-weight 0") && err.contains("vgg"), "{err}");
+}
