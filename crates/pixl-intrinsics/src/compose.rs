@@ -362,32 +362,6 @@ pub fn compose(set: &PassSet, opts: &ComposeOptions) -> Result<Composed> {
         );
     }
 
-    // NaN/Inf: count over every pass used, first location in compose order.
-    let mut count = 0;
-    let mut first: Option<(&str, usize)> = None;
-    for pass in compose_passes() {
-        if let Some(img) = set.passes.get(pass.short) {
-            let (n, f) = non_finite(&img.data);
-            count += n;
-            if let (None, Some(i)) = (first, f) {
-                first = Some((pass.short, i));
-            }
-        }
-    }
-    if let Some((pass, i)) = first {
-        if !opts.sanitize {
-            let p = i / 3;
-            return Err(IntrinsicsError::NonFinitePasses {
-                source_name: set.source_name(),
-                count,
-                pass: pass.into(),
-                x: p % set.width,
-                y: p / set.width,
-                channel: ["R", "G", "B"][i % 3].into(),
-            });
-        }
-    }
-
     let get = |p: Pass| set.passes.get(p.short).map(|img| img.data.as_slice());
     let src = Sources {
         diff_col: get(passes::DIFF_COL).unwrap_or(&[]),
@@ -407,16 +381,41 @@ pub fn compose(set: &PassSet, opts: &ComposeOptions) -> Result<Composed> {
     };
     let n = set.width * set.height * 3;
     let (mut a, mut s, mut r) = (vec![0f32; n], vec![0f32; n], vec![0f32; n]);
-    if count > 0 {
+    // The kernel flags non-finite inputs as it goes (one read of the passes); only then are they
+    // counted and located, and composed again with them read as 0 if `sanitize`.
+    let mut count = 0;
+    if !compose_kernel::<false>(&src, &mut a, &mut s, &mut r) {
+        // NaN/Inf: count over every pass used, first location in compose order.
+        let mut first: Option<(&str, usize)> = None;
+        for pass in compose_passes() {
+            if let Some(img) = set.passes.get(pass.short) {
+                let (n, f) = non_finite(&img.data);
+                count += n;
+                if let (None, Some(i)) = (first, f) {
+                    first = Some((pass.short, i));
+                }
+            }
+        }
+        if let Some((pass, i)) = first {
+            if !opts.sanitize {
+                let p = i / 3;
+                return Err(IntrinsicsError::NonFinitePasses {
+                    source_name: set.source_name(),
+                    count,
+                    pass: pass.into(),
+                    x: p % set.width,
+                    y: p / set.width,
+                    channel: ["R", "G", "B"][i % 3].into(),
+                });
+            }
+        }
         compose_kernel::<true>(&src, &mut a, &mut s, &mut r);
-    } else {
-        compose_kernel::<false>(&src, &mut a, &mut s, &mut r);
     }
 
     let tau = if opts.rescale {
         let (ps, pr) = rayon::join(
-            || percentile(&mut s.clone(), RESCALE_PERCENTILE),
-            || percentile(&mut r.clone(), RESCALE_PERCENTILE),
+            || percentile_nonneg(&s, RESCALE_PERCENTILE),
+            || percentile_nonneg(&r, RESCALE_PERCENTILE),
         );
         let tau = ps.max(pr).max(TAU_EPS);
         let inv = 1.0 / tau;
@@ -450,25 +449,42 @@ struct Sources<'a> {
 }
 
 /// A, S and R before rescaling, element-wise over the interleaved buffers. With `SANITIZE`,
-/// non-finite inputs read as 0.
-fn compose_kernel<const SANITIZE: bool>(src: &Sources, a: &mut [f32], s: &mut [f32], r: &mut [f32]) {
+/// non-finite inputs read as 0. Returns whether every input sample read was finite.
+fn compose_kernel<const SANITIZE: bool>(src: &Sources, a: &mut [f32], s: &mut [f32], r: &mut [f32]) -> bool {
     let read = |v: f32| if SANITIZE && !v.is_finite() { 0.0 } else { v };
     a.par_chunks_mut(CHUNK)
         .zip(s.par_chunks_mut(CHUNK))
         .zip(r.par_chunks_mut(CHUNK))
         .enumerate()
-        .for_each(|(k, ((a, s), r))| {
+        .map(|(k, ((a, s), r))| {
             let base = k * CHUNK;
             let opt = |j: usize, i: usize| src.optional[j].map_or(0.0, |d| read(d[i]));
+            // `v * 0` is 0 for finite v and NaN otherwise: a branch-free finiteness probe.
+            let mut probe = 0f32;
             for (o, ((a, s), r)) in a.iter_mut().zip(s.iter_mut()).zip(r.iter_mut()).enumerate() {
                 let i = base + o;
-                *a = read(src.diff_col[i]).clamp(0.0, 1.0);
-                *s = (read(src.diff_dir[i]) + read(src.diff_ind[i])).max(0.0);
-                let gloss = opt(0, i) * (opt(1, i) + opt(2, i));
-                let trans = opt(3, i) * (opt(4, i) + opt(5, i));
-                *r = (gloss + trans + opt(6, i) + opt(7, i) + opt(8, i)).max(0.0);
+                let (dc, dd, di) = (read(src.diff_col[i]), read(src.diff_dir[i]), read(src.diff_ind[i]));
+                let o = [
+                    opt(0, i),
+                    opt(1, i),
+                    opt(2, i),
+                    opt(3, i),
+                    opt(4, i),
+                    opt(5, i),
+                    opt(6, i),
+                    opt(7, i),
+                    opt(8, i),
+                ];
+                probe += (dc + dd + di + o.iter().sum::<f32>()) * 0.0;
+                *a = dc.clamp(0.0, 1.0);
+                *s = (dd + di).max(0.0);
+                let gloss = o[0] * (o[1] + o[2]);
+                let trans = o[3] * (o[4] + o[5]);
+                *r = (gloss + trans + o[6] + o[7] + o[8]).max(0.0);
             }
-        });
+            probe == 0.0
+        })
+        .reduce(|| true, |x, y| x && y)
 }
 
 /// The `q`-th percentile (0–100) of `values`, linear interpolation between order statistics
@@ -487,5 +503,27 @@ pub fn percentile(values: &mut [f32], q: f64) -> f32 {
         return x_lo;
     }
     let x_hi = rest.iter().copied().fold(f32::INFINITY, f32::min);
+    (x_lo as f64 + frac * (x_hi as f64 - x_lo as f64)) as f32
+}
+
+/// [`percentile`] of finite values ≥ 0 (S and R after `max(·, 0)`), without reordering them: the
+/// selection runs on a copy of their bit patterns, which order like the values for finite
+/// non-negative floats and compare faster than `f32::total_cmp`.
+fn percentile_nonneg(values: &[f32], q: f64) -> f32 {
+    let n = values.len();
+    if n == 0 {
+        return 0.0;
+    }
+    // `+ 0.0` turns −0.0 (which `max(−0.0, 0.0)` may return) into +0.0, whose bits sort first.
+    let mut bits: Vec<u32> = values.par_iter().map(|v| (v + 0.0).to_bits()).collect();
+    let h = (q / 100.0).clamp(0.0, 1.0) * (n - 1) as f64;
+    let lo = (h.floor() as usize).min(n - 1);
+    let frac = h - lo as f64;
+    let (_, &mut b_lo, rest) = bits.select_nth_unstable(lo);
+    let x_lo = f32::from_bits(b_lo);
+    if frac == 0.0 || rest.is_empty() {
+        return x_lo;
+    }
+    let x_hi = f32::from_bits(rest.iter().copied().min().unwrap_or(b_lo));
     (x_lo as f64 + frac * (x_hi as f64 - x_lo as f64)) as f32
 }
