@@ -17,12 +17,15 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("psnr {w}x{h}: {}", t.describe());
     let t = time_runs(DEFAULT_WARMUPS, DEFAULT_RUNS, || ssim(&b, &a).map(|_| ()))?;
     println!("ssim {w}x{h}: {}", t.describe());
-    for net in [LpipsNet::Alex, LpipsNet::Vgg] {
+    // VGG16 at this size needs several GiB of activations; pass `vgg` to time it too.
+    let mut nets = vec![LpipsNet::Alex];
+    if std::env::args().any(|a| a == "vgg") {
+        nets.push(LpipsNet::Vgg);
+    }
+    for net in nets {
         let map = VarMap::new();
         let lpips = Lpips::new(net, VarBuilder::from_varmap(&map, DType::F32, &Device::Cpu))?;
-        let runs = if net == LpipsNet::Vgg { 1 } else { DEFAULT_RUNS };
-        let warm = if net == LpipsNet::Vgg { 0 } else { DEFAULT_WARMUPS };
-        let t = time_runs(warm, runs, || lpips.distance(&b, &a).map(|_| ()))?;
+        let t = time_runs(DEFAULT_WARMUPS, DEFAULT_RUNS, || lpips.distance(&b, &a).map(|_| ()))?;
         println!("lpips-{} {w}x{h}: {}", net.name(), t.describe());
     }
     Ok(())
