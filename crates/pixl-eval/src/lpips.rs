@@ -72,12 +72,15 @@ impl LpipsNet {
 #[derive(Debug, thiserror::Error)]
 pub enum LpipsError {
     #[error("{path}: cannot read LPIPS weights: {source}")]
-    Read { path: PathBuf, source: candle_core::Error },
+    Read {
+        path: PathBuf,
+        source: Box<candle_core::Error>,
+    },
     #[error("{path}: not usable as LPIPS-{net} weights (expected torchvision `features.*` and `lin0..4.model.1.weight`): {source}")]
     Weights {
         path: PathBuf,
         net: &'static str,
-        source: candle_core::Error,
+        source: Box<candle_core::Error>,
     },
     #[error("LPIPS needs two 3-channel images of equal size, got {a} and {b}")]
     Shape { a: String, b: String },
@@ -89,7 +92,13 @@ pub enum LpipsError {
         height: usize,
     },
     #[error("LPIPS computation failed: {0}")]
-    Candle(#[from] candle_core::Error),
+    Candle(Box<candle_core::Error>),
+}
+
+impl From<candle_core::Error> for LpipsError {
+    fn from(e: candle_core::Error) -> Self {
+        LpipsError::Candle(Box::new(e))
+    }
 }
 
 /// The one place that maps foreign tensor names to the canonical ones (see the module docs);
@@ -156,7 +165,7 @@ impl Lpips {
     pub fn load(path: &Path, device: &Device) -> Result<Self, LpipsError> {
         let raw = candle_core::safetensors::load(path, device).map_err(|source| LpipsError::Read {
             path: path.to_path_buf(),
-            source,
+            source: Box::new(source),
         })?;
         let mut tensors = HashMap::new();
         for (name, t) in raw {
@@ -173,7 +182,7 @@ impl Lpips {
         Self::new(net, vb).map_err(|source| LpipsError::Weights {
             path: path.to_path_buf(),
             net: net.name(),
-            source,
+            source: Box::new(source),
         })
     }
 
