@@ -153,7 +153,7 @@ fn compose_refuses_bad_inputs_with_clear_messages() {
 
 #[test]
 fn compose_reads_the_real_cycles_render() {
-    let f = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/cycles/scene256_multipart.exr");
+    let f = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/cycles/scene256_multipart.exr");
     if !f.exists() {
         println!("skipping: {} not found", f.display());
         return;

@@ -319,7 +319,7 @@ fn exr_channels_short_or_long_names_and_layers() {
 }
 
 fn fixtures() -> Option<PathBuf> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/fixtures/cycles");
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/cycles");
     if dir.join("scene256_multipart.exr").exists() {
         Some(dir)
     } else {

@@ -101,7 +101,7 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         }
         None => {
             let cfg = pixl_model::Config::tiny();
-            let (_vm, model) = pixl_model::checkpoint::build_trainable(&cfg, 0, &dev)?;
+            let model = pixl_model::checkpoint::build_inference(&cfg, 0, DType::F32, &dev)?;
             (
                 "no trained weights found: a freshly initialised `tiny` network is used, which returns the source \
                  unchanged (its output convolution is zero-initialised)"
