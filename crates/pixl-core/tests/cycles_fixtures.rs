@@ -4,7 +4,9 @@ use pixl_core::exrio::read_exr_channels;
 use std::path::PathBuf;
 
 fn fixture(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/cycles").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fixtures/cycles")
+        .join(name)
 }
 
 #[test]
@@ -13,9 +15,22 @@ fn multipart_and_singlepart_agree() {
     let single = read_exr_channels(&fixture("scene256_singlepart_half.exr")).unwrap();
     assert_eq!((multi.width, multi.height), (256, 256));
     assert_eq!((single.width, single.height), (256, 256));
-    for name in ["ViewLayer.Diffuse Direct.R", "ViewLayer.Diffuse Color.G", "ViewLayer.Combined.A", "ViewLayer.Depth.Z"] {
-        assert!(multi.get(name).is_some(), "multi-part lacks {name}: {:?}", multi.names().collect::<Vec<_>>());
-        assert!(single.get(name).is_some(), "single-part lacks {name}: {:?}", single.names().collect::<Vec<_>>());
+    for name in [
+        "ViewLayer.Diffuse Direct.R",
+        "ViewLayer.Diffuse Color.G",
+        "ViewLayer.Combined.A",
+        "ViewLayer.Depth.Z",
+    ] {
+        assert!(
+            multi.get(name).is_some(),
+            "multi-part lacks {name}: {:?}",
+            multi.names().collect::<Vec<_>>()
+        );
+        assert!(
+            single.get(name).is_some(),
+            "single-part lacks {name}: {:?}",
+            single.names().collect::<Vec<_>>()
+        );
     }
     // Same scene, same seed; half floats and ~1 % of pixels differing between renders.
     let a = multi.get("ViewLayer.Diffuse Color.G").unwrap();
