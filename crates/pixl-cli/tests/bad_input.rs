@@ -353,7 +353,7 @@ fn rewrite_tensor(src: &Path, dst: &Path, shape: Option<Vec<usize>>, dtype: Opti
         );
     }
     let mut h = serde_json::to_vec(&serde_json::Value::Object(out_header)).unwrap();
-    while h.len() % 8 != 0 {
+    while !h.len().is_multiple_of(8) {
         h.push(b' ');
     }
     let mut out = (h.len() as u64).to_le_bytes().to_vec();

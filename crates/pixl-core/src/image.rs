@@ -224,7 +224,8 @@ mod tests {
     fn chw_roundtrip() {
         let img = Image::from_fn(3, 2, 4, |x, y, c| (x * 100 + y * 10 + c) as f32);
         let chw = img.to_chw();
-        assert_eq!(chw[2 * 6 + 1 * 3 + 2], img.get(2, 1, 2));
+        // channel 2, row 1, column 2 of a 3-wide, 2-high plane: 2·(3·2) + 1·3 + 2
+        assert_eq!(chw[2 * 6 + 3 + 2], img.get(2, 1, 2));
         assert_eq!(Image::from_chw(3, 2, 4, &chw).unwrap(), img);
     }
 

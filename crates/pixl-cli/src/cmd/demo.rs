@@ -153,9 +153,9 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         let relit = from_tensor(&model.forward(&src_t, &ct_t)?)?;
         let dir = args.out.join(preset);
         std::fs::create_dir_all(&dir)?;
-        let shown_s = ct.shading.map(|v| pixl_core::image::linear_to_srgb(v));
-        let shown_r = ct.residual.map(|v| pixl_core::image::linear_to_srgb(v));
-        let shown_a = ct.albedo.map(|v| pixl_core::image::linear_to_srgb(v));
+        let shown_s = ct.shading.map(pixl_core::image::linear_to_srgb);
+        let shown_r = ct.residual.map(pixl_core::image::linear_to_srgb);
+        let shown_a = ct.albedo.map(pixl_core::image::linear_to_srgb);
         for (name, img) in [
             ("relit", &relit),
             ("path_traced", &path_traced),
