@@ -176,7 +176,7 @@ impl TrainConfig {
         if self.optim.batch_size == 0 || self.optim.accumulate == 0 {
             return bad("[optim] batch_size and accumulate must be at least 1");
         }
-        if !(self.optim.clip_norm > 0.0) {
+        if self.optim.clip_norm.is_nan() || self.optim.clip_norm <= 0.0 {
             return bad("[optim] clip_norm must be positive");
         }
         if self.loss.perceptual_weight < 0.0 {

@@ -5,7 +5,7 @@
 //!   and C_T; no photometric augmentation).
 //! - [`optim`]: AdamW (decay exemptions), the warm-up + cosine schedule, global-norm clipping.
 //! - [`loss`]: L1 + λ·VGG16 perceptual (feature L1).
-//! - [`config`]: `train.toml`.
+//! - [`config`]: the `train.toml` settings.
 //! - [`trainer`]: the loop (accumulation, C_T corruption, logs, sample grids, checkpoints).
 //! - [`state`]: the resumable checkpoint file (bit-exact resume on CPU).
 pub mod config;

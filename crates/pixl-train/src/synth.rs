@@ -62,7 +62,7 @@ fn texture(rng: &mut Rng, size: usize) -> Image {
     if rng.bernoulli(0.5) {
         let cells = 2 + rng.below(7);
         Image::from_fn(size, size, 3, |x, y, c| {
-            if (x * cells / size + y * cells / size) % 2 == 0 {
+            if (x * cells / size + y * cells / size).is_multiple_of(2) {
                 a[c]
             } else {
                 b[c]

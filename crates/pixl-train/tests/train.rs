@@ -177,7 +177,7 @@ fn tiny_overfits_a_single_pair() {
     let mut best = 0.0f64;
     for _ in 0..400 {
         t.train_step().unwrap();
-        if t.step % 50 == 0 {
+        if t.step.is_multiple_of(50) {
             let ds = pixl_train::data::open(
                 &format!("folder:{}", dir.path().join("data").display()),
                 pixl_train::data::Split::All,
