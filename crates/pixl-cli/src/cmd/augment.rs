@@ -21,7 +21,7 @@ pub struct Args {
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(1..=64))]
     pub n: u64,
     /// Output PNG.
-    #[arg(short, long)]
+    #[arg(short = 'o', long = "out", visible_alias = "output")]
     pub output: PathBuf,
     /// Augmentation config (TOML or JSON, fields of AugmentConfig; missing fields take Table 4's values).
     #[arg(long)]

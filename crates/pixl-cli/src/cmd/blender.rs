@@ -12,6 +12,9 @@ pub enum Command {
 }
 
 #[derive(clap::Args, Debug)]
+#[command(
+    after_help = "Example:\n  pixl blender export scene/scene.toml -o scene.py\n  blender -b -P scene.py -- --out passes.exr --spp 64   # or: python scene.py --out passes.exr (with PyPI bpy)"
+)]
 pub struct ExportArgs {
     /// The scene (.toml or .json).
     pub scene: PathBuf,

@@ -18,7 +18,7 @@ pub struct Args {
     /// Cycles multilayer EXR, or a folder of single-pass EXRs named by pass (DiffCol.exr, Diffuse Direct.exr, …).
     pub passes: PathBuf,
     /// Output C_T file (.exr).
-    #[arg(short, long)]
+    #[arg(short = 'o', long = "out", visible_alias = "output")]
     pub output: PathBuf,
     /// View layer to read (default: the only one in the file).
     #[arg(long)]

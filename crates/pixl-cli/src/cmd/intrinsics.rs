@@ -21,7 +21,7 @@ pub struct PreviewArgs {
     /// C_T file (EXR with albedo.R/G/B, shading.R/G/B, residual.R/G/B).
     pub ct: PathBuf,
     /// Output PNG.
-    #[arg(short, long)]
+    #[arg(short = 'o', long = "out", visible_alias = "output")]
     pub output: PathBuf,
 }
 

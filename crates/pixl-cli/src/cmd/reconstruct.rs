@@ -25,6 +25,9 @@ pub enum MeshFormat {
 }
 
 #[derive(clap::Args, Debug)]
+#[command(
+    after_help = "Example:\n  pixl reconstruct --image photo.png --depth depth.exr --albedo albedo.png --fov 60 -o scene/"
+)]
 pub struct Args {
     /// The photo (PNG/JPEG/EXR); its size is the camera's.
     #[arg(long)]

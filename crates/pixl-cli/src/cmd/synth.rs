@@ -4,6 +4,7 @@ use crate::Ctx;
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
+#[command(after_help = "Example:\n  pixl synth --scenes 48 --lights 4 --size 128 --spp 16 --seed 1 -o synth/")]
 pub struct Args {
     /// Number of procedural scenes.
     #[arg(long, default_value_t = 100)]

@@ -6,6 +6,9 @@ use anyhow::Context;
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
+#[command(
+    after_help = "Examples:\n  pixl train --config assets/demo-weights/train.toml\n  pixl train --config train.toml --resume"
+)]
 pub struct Args {
     /// The run's `train.toml` (see `pixl_train::config`).
     #[arg(long)]
