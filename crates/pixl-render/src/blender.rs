@@ -29,7 +29,7 @@
 //!   = `--max-bounces` (default 8, the native default), no clamping, no glossy filter; passes
 //!   enabled: Combined, Z, Normal, Emission, Environment, Diffuse/Glossy/Transmission
 //!   Direct/Indirect/Color, Volume Direct/Indirect — and nothing else.
-use crate::scene::{AreaShape, Light, Scene, Shape};
+use crate::scene::{cross, length, normalize, AreaShape, Light, Scene, Shape};
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
@@ -84,21 +84,6 @@ fn light_axes(d: [f32; 3]) -> ([f32; 3], [f32; 3]) {
     };
     let y = normalize(cross(d.map(|c| -c), x));
     (x, y)
-}
-
-fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-fn length(a: [f32; 3]) -> f32 {
-    (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
-}
-fn normalize(a: [f32; 3]) -> [f32; 3] {
-    let l = length(a);
-    a.map(|c| c / l)
 }
 
 /// Row-major 4×4 from basis columns and an origin.
