@@ -1,10 +1,12 @@
 //! The film: per-pixel render passes with **Cycles' meanings** (names from
 //! [`pixl_core::passes`]).
 //!
-//! - `DiffCol`, `GlossCol`, `TransCol`: the lobe's albedo-like colour weight at the first camera
-//!   hit (diffuse `base·(1−metallic)·(1−transmission)`; glossy `Schlick(F0, cos θo)·scale`
-//!   plus the glass's Fresnel reflectance; transmission `base·(1−metallic)·transmission·(1−F)`),
-//!   averaged over samples.
+//! - `DiffCol`, `GlossCol`, `TransCol`: the albedo of the lobes of each kind at the first camera
+//!   hit for the view direction, as Cycles' `bsdf_albedo` (see [`crate::material`]): diffuse
+//!   `base·(1−metallic)·(1−transmission)·(1 − A_spec/w)` (the base under the specular coat of
+//!   albedo `A_spec`); glossy the energy-compensated, Fresnel-weighted albedos of the metal and
+//!   dielectric GGX lobes plus the glass's Fresnel reflectance; transmission
+//!   `base·(1−metallic)·transmission·(1−F)`. Averaged over samples.
 //! - `*Dir`: light reaching the first hit straight from a light (next-event estimation plus
 //!   MIS-weighted emission found by the first BSDF ray); `*Ind`: all other light scattered at the
 //!   first hit. Both are stored **divided by the colour pass** as Cycles does: accumulated as
