@@ -4,7 +4,16 @@
 //!
 //! `cargo run --release -p pixl-render --example bench_render [-- GRID SPP]` (GRID = vertices
 //! per side, default 500 → 498 002 triangles).
+//!
+//! After the render it also times ray casting alone on the main thread (a load-independent
+//! figure: rays per second per thread) for three ray kinds made from the camera view: primary
+//! (closest hit), diffuse bounce from the primary hits (cosine about the normal, closest hit) and
+//! shadow rays from the primary hits to a light sample (any hit).
+use pixl_core::Rng;
+use pixl_render::bvh::Ray;
 use pixl_render::integrator::Renderer;
+use pixl_render::math::Frame;
+use pixl_render::sampling::cosine_hemisphere;
 use pixl_render::scene::{AreaShape, Camera, Color, Light, Material, Object, Scene, Shape, Transform, World};
 use pixl_render::{Mesh, RenderOptions};
 use std::time::Instant;
@@ -71,16 +80,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         spp,
         ..Default::default()
     };
-    let t0 = Instant::now();
+    let (t0, c0) = (Instant::now(), process_cpu_s());
     let r = Renderer::new(&scene, &opts)?;
-    let t_build = t0.elapsed().as_secs_f64();
-    let t1 = Instant::now();
+    let (t_build, c_build) = (t0.elapsed().as_secs_f64(), process_cpu_s() - c0);
+    let (t1, c1) = (Instant::now(), process_cpu_s());
     let film = r.render(&|_, _| {});
-    let t_render = t1.elapsed().as_secs_f64();
+    let (t_render, c_render) = (t1.elapsed().as_secs_f64(), process_cpu_s() - c1);
     let comb = film.pass("Combined").ok_or("no Combined")?;
     let mean: f64 = comb.data.iter().map(|v| *v as f64).sum::<f64>() / comb.data.len() as f64;
     println!(
-        "{} triangles, {} BVH nodes, {}x{} @ {} spp, {} threads: load+BVH {:.2} s, render {:.2} s (mean Combined {:.4})",
+        "{} triangles, {} BVH nodes, {}x{} @ {} spp, {} threads: load+BVH {:.2} s (CPU {:.2} s), render {:.2} s (CPU {:.2} s) (mean Combined {:.4})",
         r.geom.tris.len(),
         r.geom.bvh.num_nodes(),
         film.width,
@@ -88,8 +97,89 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         spp,
         rayon::current_num_threads(),
         t_build,
+        c_build,
         t_render,
+        c_render,
         mean
     );
+    ray_throughput(&r);
     Ok(())
+}
+
+/// Times closest-hit and any-hit queries alone on this thread and prints Mrays/s (wall clock
+/// and per CPU-second of this thread, the figure that does not depend on other load).
+fn ray_throughput(r: &Renderer) {
+    let g = &r.geom;
+    let mut rng = Rng::new(7);
+    let mut primary = Vec::new();
+    for y in 0..r.height {
+        for x in 0..r.width {
+            primary.push((r.camera.ray(x as f32 + rng.f32(), y as f32 + rng.f32()), f32::INFINITY));
+        }
+    }
+    let time = |name: &str, rays: &[(Ray, f32)], f: &dyn Fn(&Ray, f32) -> bool| {
+        // Best of three passes (the machine may be shared).
+        let (mut wall, mut cpu, mut hits) = (f64::INFINITY, f64::INFINITY, 0);
+        for _ in 0..3 {
+            let (t, c) = (Instant::now(), thread_cpu_s());
+            hits = rays.iter().filter(|(ray, tmax)| f(ray, *tmax)).count();
+            wall = wall.min(t.elapsed().as_secs_f64());
+            cpu = cpu.min(thread_cpu_s() - c);
+        }
+        println!(
+            "  {name:<7} {:>7} rays, {:5.1}% hit: {:.2} Mrays/s wall, {:.2} Mrays per CPU-second (best of 3)",
+            rays.len(),
+            100.0 * hits as f64 / rays.len().max(1) as f64,
+            rays.len() as f64 / wall / 1e6,
+            rays.len() as f64 / cpu / 1e6
+        );
+    };
+    let closest = |ray: &Ray, tmax: f32| g.intersect(ray, 0.0, tmax).is_some();
+    time("primary", &primary, &closest);
+    let mut bounce = Vec::new();
+    let mut shadow = Vec::new();
+    for (ray, _) in &primary {
+        let Some(h) = g.intersect(ray, 0.0, f32::INFINITY) else {
+            continue;
+        };
+        let n = if h.ng.dot(ray.d) < 0.0 { h.ng } else { -h.ng };
+        let o = h.p + n * 1e-4 * (1.0 + h.p.x.abs().max(h.p.y.abs()).max(h.p.z.abs()));
+        let f = Frame::new(n);
+        bounce.push((
+            Ray::new(o, f.to_world(cosine_hemisphere(rng.f32(), rng.f32()))),
+            f32::INFINITY,
+        ));
+        if let Some(ls) = r.lights.sample(g, h.p, rng.f32(), rng.f32(), rng.f32()) {
+            let tmax = if ls.dist.is_finite() {
+                ls.dist * (1.0 - 1e-3)
+            } else {
+                f32::INFINITY
+            };
+            shadow.push((Ray::new(o, ls.wi), tmax));
+        }
+    }
+    time("bounce", &bounce, &closest);
+    time("shadow", &shadow, &|ray, tmax| g.occluded(ray, 0.0, tmax));
+}
+
+/// CPU seconds this thread has run (Linux `schedstat`; 0 elsewhere).
+fn thread_cpu_s() -> f64 {
+    schedstat_s("/proc/thread-self/schedstat")
+}
+
+/// CPU seconds all threads of this process have run (Linux `schedstat`; 0 elsewhere).
+fn process_cpu_s() -> f64 {
+    let Ok(dir) = std::fs::read_dir("/proc/self/task") else {
+        return 0.0;
+    };
+    dir.flatten()
+        .map(|e| schedstat_s(&e.path().join("schedstat").to_string_lossy()))
+        .sum()
+}
+
+fn schedstat_s(path: &str) -> f64 {
+    std::fs::read_to_string(path)
+        .ok()
+        .and_then(|s| s.split_whitespace().next().and_then(|v| v.parse::<u64>().ok()))
+        .map_or(0.0, |ns| ns as f64 * 1e-9)
 }

@@ -1,12 +1,30 @@
-//! A bounding-volume hierarchy over triangles: binned SAH build (12 bins × 3 axes), flattened
-//! depth-first nodes (left child follows its parent), ordered stack traversal.
+//! A bounding-volume hierarchy over triangles for the tracer: a binary binned-SAH build
+//! collapsed into a 4-wide tree, with triangles stored in leaf order as 4-wide packets.
 //!
-//! Why our own rather than a crate: we measured the need, not two crates — the renderer needs
-//! ~150 lines of BVH, must be deterministic (the build is single-threaded and tie-breaks by
-//! index, so the same scene gives the same tree and bit-identical images), and is tuned for our
-//! triangle layout ([`Tri`]: vertex + two edges, Möller–Trumbore) with primitives reordered into
-//! leaf order for locality. The crates we looked at (`bvh`, `obvhs`) either bring their own
-//! vector types or their own ray/primitive traits; adapting to them costs as much code as this.
+//! Contract: [`Bvh::intersect`] returns the closest hit in `(tmin, tmax)` and
+//! [`Bvh::occluded`] whether any hit lies there, both as the Möller–Trumbore test
+//! [`intersect_tri`] (two-sided) over every triangle would — the packet test performs the same
+//! floating-point operations in the same order per lane, so hit distances and barycentrics are
+//! bit-identical to [`intersect_tri`]'s; among triangles hit at exactly the same distance the
+//! one reported may differ. [`Hit::prim`] indexes the input slice given to [`Bvh::build`]
+//! after reordering with the permutation it returns.
+//!
+//! Layout, chosen by measurement on the ~500 k-triangle depth-mesh benchmark (see
+//! BENCHMARKS.md): traversal is bound by memory latency, so the tree is shallow and wide.
+//! - Build: binned SAH (12 bins × 3 axes) with a packet-aware cost (`ceil(n/4)` per side),
+//!   leaves of at most 4 triangles (one packet); deterministic (ties broken by index, subtrees
+//!   built in parallel but laid out in a fixed order), so a scene always gives the same tree.
+//! - Nodes: 128-byte, 64-byte-aligned, structure-of-arrays boxes of 4 children, so the four
+//!   slab tests are plain lane loops the compiler turns into SIMD on stable Rust (SSE2).
+//! - Leaves: [`Tri4`] packets (vertex and two edges per lane, lanes padded with zero-area
+//!   triangles that never hit), tested 4 at a time the same way.
+//! - Traversal: children hit by the ray are visited nearest first (sorted by entry distance)
+//!   for closest-hit queries, with entries farther than the current hit skipped when popped;
+//!   any-hit queries stop at the first hit and do not sort.
+//!
+//! Why our own rather than a crate: the renderer needs a few hundred lines of BVH, must be
+//! deterministic and is tuned to this triangle layout; the crates we looked at (`bvh`, `obvhs`)
+//! bring their own vector types or their own ray/primitive traits.
 use crate::math::V3;
 
 /// A triangle as stored for intersection: one vertex and two edges.
@@ -44,19 +62,52 @@ pub struct Hit {
     pub prim: u32,
 }
 
+/// Four triangles, structure of arrays: `p0[axis][lane]`, `e1`, `e2` likewise, and the index
+/// of each lane's triangle (`u32::MAX` for padding lanes, which have zero edges).
 #[derive(Clone, Copy, Debug)]
-struct Node {
-    min: [f32; 3],
-    /// Leaf: first primitive; interior: index of the right child.
-    offset: u32,
-    max: [f32; 3],
-    /// Leaf: primitive count (> 0); interior: 0.
-    count: u32,
+#[repr(C, align(32))]
+struct Tri4 {
+    p0: [[f32; 4]; 3],
+    e1: [[f32; 4]; 3],
+    e2: [[f32; 4]; 3],
+    prim: [u32; 4],
 }
+
+/// A 4-wide interior node: child boxes as rows `lo_x, lo_y, lo_z, hi_x, hi_y, hi_z` of four
+/// lanes, and the children ([`EMPTY`], an interior node index, or [`LEAF`] | packet fields).
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(64))]
+struct Node4 {
+    b: [[f32; 4]; 6],
+    child: [u32; 4],
+}
+
+impl Node4 {
+    /// No children: empty boxes (`lo = +∞`, `hi = −∞`) that no ray enters.
+    const EMPTY: Node4 = Node4 {
+        b: [
+            [f32::INFINITY; 4],
+            [f32::INFINITY; 4],
+            [f32::INFINITY; 4],
+            [f32::NEG_INFINITY; 4],
+            [f32::NEG_INFINITY; 4],
+            [f32::NEG_INFINITY; 4],
+        ],
+        child: [EMPTY; 4],
+    };
+}
+
+/// Child slot flag: a leaf; bits 28..31 hold the packet count − 1, bits 0..28 the first packet.
+const LEAF: u32 = 1 << 31;
+const LEAF_COUNT_SHIFT: u32 = 28;
+const LEAF_INDEX_MASK: u32 = (1 << LEAF_COUNT_SHIFT) - 1;
+/// An unused child slot (its box is empty, so it is never entered).
+const EMPTY: u32 = u32::MAX;
 
 #[derive(Clone, Debug, Default)]
 pub struct Bvh {
-    nodes: Vec<Node>,
+    nodes: Vec<Node4>,
+    packets: Vec<Tri4>,
 }
 
 #[derive(Clone, Copy)]
@@ -67,8 +118,8 @@ struct Aabb {
 
 impl Aabb {
     const EMPTY: Aabb = Aabb {
-        lo: V3::splat_const(f32::INFINITY),
-        hi: V3::splat_const(f32::NEG_INFINITY),
+        lo: V3::new(f32::INFINITY, f32::INFINITY, f32::INFINITY),
+        hi: V3::new(f32::NEG_INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY),
     };
     fn grow(&mut self, o: &Aabb) {
         self.lo = self.lo.min(o.lo);
@@ -87,59 +138,49 @@ impl Aabb {
     }
 }
 
-impl V3 {
-    const fn splat_const(v: f32) -> V3 {
-        V3 { x: v, y: v, z: v }
-    }
+const BINS: usize = 12;
+/// Triangles per packet and the most in a leaf.
+const LANES: usize = 4;
+/// Below this many primitives a subtree is built on the current thread.
+const PAR_MIN: usize = 8192;
+/// From this binary depth on, splits are object medians, so the depth stays below
+/// `MEDIAN_DEPTH + log2(n)` whatever the geometry (bounds the traversal stack's use).
+const MEDIAN_DEPTH: usize = 40;
+/// Traversal stack entries; deeper pushes fall back to recursion (never reached in practice).
+const STACK: usize = 64;
+
+/// A node of the temporary binary tree.
+struct BNode {
+    bb: Aabb,
+    /// Leaf: `Some((first, count))` into the permuted primitive order.
+    leaf: Option<(u32, u32)>,
+    kids: Option<Box<(BNode, BNode)>>,
 }
 
-const BINS: usize = 12;
-const MAX_LEAF: usize = 8;
+fn packets_of(n: usize) -> f32 {
+    n.div_ceil(LANES) as f32
+}
 
-impl Bvh {
-    /// Builds over `tris` and returns the tree and the permutation: position `i` of the
-    /// reordered primitives holds original primitive `perm[i]`. Reorder your arrays with it.
-    pub fn build(tris: &[Tri]) -> (Bvh, Vec<u32>) {
-        let boxes: Vec<Aabb> = tris
-            .iter()
-            .map(|t| {
-                let mut b = Aabb::EMPTY;
-                b.grow_p(t.p0);
-                b.grow_p(t.p0 + t.e1);
-                b.grow_p(t.p0 + t.e2);
-                b
-            })
-            .collect();
-        let cents: Vec<V3> = boxes.iter().map(|b| (b.lo + b.hi) * 0.5).collect();
-        let mut idx: Vec<u32> = (0..tris.len() as u32).collect();
-        let mut bvh = Bvh {
-            nodes: Vec::with_capacity(2 * tris.len() / 3 + 1),
-        };
-        if !tris.is_empty() {
-            bvh.build_rec(&boxes, &cents, &mut idx, 0);
-        }
-        (bvh, idx)
+/// Builds the binary tree over `idx` (reordered in place); `first` is `idx[0]`'s position.
+fn build_bin(boxes: &[Aabb], cents: &[V3], idx: &mut [u32], first: usize, depth: usize) -> BNode {
+    let mut bb = Aabb::EMPTY;
+    let mut cb = Aabb::EMPTY;
+    for &i in idx.iter() {
+        bb.grow(&boxes[i as usize]);
+        cb.grow_p(cents[i as usize]);
     }
-
-    fn build_rec(&mut self, boxes: &[Aabb], cents: &[V3], idx: &mut [u32], first: usize) -> usize {
-        let node_i = self.nodes.len();
-        let mut bb = Aabb::EMPTY;
-        let mut cb = Aabb::EMPTY;
-        for &i in idx.iter() {
-            bb.grow(&boxes[i as usize]);
-            cb.grow_p(cents[i as usize]);
-        }
-        let n = idx.len();
-        self.nodes.push(Node {
-            min: bb.lo.to_arr(),
-            offset: first as u32,
-            max: bb.hi.to_arr(),
-            count: n as u32,
-        });
-        if n <= 2 {
-            return node_i;
-        }
-        // Binned SAH over the three axes.
+    let n = idx.len();
+    let leaf = |bb: Aabb| BNode {
+        bb,
+        leaf: Some((first as u32, n as u32)),
+        kids: None,
+    };
+    if n <= LANES {
+        return leaf(bb);
+    }
+    let mut mid = 0;
+    if depth < MEDIAN_DEPTH {
+        // Binned SAH over the three axes, cost in packets.
         let mut best: Option<(usize, usize, f32)> = None;
         for axis in 0..3 {
             let (lo, hi) = (cb.lo[axis], cb.hi[axis]);
@@ -171,129 +212,338 @@ impl Bvh {
                 if cnt == 0 || right_count[b + 1] == 0 {
                     continue;
                 }
-                let cost = acc.area() * cnt as f32 + right_area[b + 1] * right_count[b + 1] as f32;
+                let cost = acc.area() * packets_of(cnt) + right_area[b + 1] * packets_of(right_count[b + 1]);
                 if best.is_none_or(|(_, _, c)| cost < c) {
                     best = Some((axis, b, cost));
                 }
             }
         }
-        let parent_area = bb.area().max(1e-30);
-        let mid = match best {
-            Some((axis, b, cost)) if 1.0 + cost / parent_area < n as f32 || n > MAX_LEAF => {
-                let (lo, hi) = (cb.lo[axis], cb.hi[axis]);
-                let scale = BINS as f32 / (hi - lo);
-                let mut l = 0;
-                for k in 0..n {
-                    let c = cents[idx[k] as usize][axis];
-                    if (((c - lo) * scale) as usize).min(BINS - 1) <= b {
-                        idx.swap(k, l);
-                        l += 1;
-                    }
+        if let Some((axis, b, _)) = best {
+            let (lo, hi) = (cb.lo[axis], cb.hi[axis]);
+            let scale = BINS as f32 / (hi - lo);
+            for k in 0..n {
+                let c = cents[idx[k] as usize][axis];
+                if (((c - lo) * scale) as usize).min(BINS - 1) <= b {
+                    idx.swap(k, mid);
+                    mid += 1;
                 }
-                l
             }
-            Some(_) => return node_i,
-            None if n > MAX_LEAF => n / 2,
-            None => return node_i,
-        };
-        if mid == 0 || mid == n {
-            return node_i;
         }
-        let (left, right) = idx.split_at_mut(mid);
-        self.build_rec(boxes, cents, left, first);
-        let r = self.build_rec(boxes, cents, right, first + mid);
-        self.nodes[node_i].offset = r as u32;
-        self.nodes[node_i].count = 0;
-        node_i
+    }
+    if mid == 0 || mid == n {
+        // No usable SAH split (coincident centroids, or past the depth limit): object median
+        // along the widest centroid axis, ties by index.
+        let ext = cb.hi - cb.lo;
+        let axis = if ext.x >= ext.y && ext.x >= ext.z {
+            0
+        } else if ext.y >= ext.z {
+            1
+        } else {
+            2
+        };
+        mid = n / 2;
+        idx.select_nth_unstable_by(mid, |&a, &b| {
+            cents[a as usize][axis]
+                .total_cmp(&cents[b as usize][axis])
+                .then(a.cmp(&b))
+        });
+    }
+    let (left, right) = idx.split_at_mut(mid);
+    let (l, r) = if n >= PAR_MIN {
+        rayon::join(
+            || build_bin(boxes, cents, left, first, depth + 1),
+            || build_bin(boxes, cents, right, first + mid, depth + 1),
+        )
+    } else {
+        (
+            build_bin(boxes, cents, left, first, depth + 1),
+            build_bin(boxes, cents, right, first + mid, depth + 1),
+        )
+    };
+    BNode {
+        bb,
+        leaf: None,
+        kids: Some(Box::new((l, r))),
+    }
+}
+
+impl Bvh {
+    /// Builds over `tris` and returns the tree and the permutation: position `i` of the
+    /// reordered primitives holds original primitive `perm[i]`. Reorder your arrays with it.
+    pub fn build(tris: &[Tri]) -> (Bvh, Vec<u32>) {
+        let boxes: Vec<Aabb> = tris
+            .iter()
+            .map(|t| {
+                let mut b = Aabb::EMPTY;
+                b.grow_p(t.p0);
+                b.grow_p(t.p0 + t.e1);
+                b.grow_p(t.p0 + t.e2);
+                b
+            })
+            .collect();
+        let cents: Vec<V3> = boxes.iter().map(|b| (b.lo + b.hi) * 0.5).collect();
+        let mut idx: Vec<u32> = (0..tris.len() as u32).collect();
+        let mut bvh = Bvh::default();
+        if tris.is_empty() {
+            return (bvh, idx);
+        }
+        let root = build_bin(&boxes, &cents, &mut idx, 0, 0);
+        let sorted: Vec<Tri> = idx.iter().map(|&i| tris[i as usize]).collect();
+        if root.leaf.is_some() {
+            // A single leaf still gets a node, so traversal always starts at node 0.
+            bvh.nodes.push(Node4::EMPTY);
+            bvh.set_child(0, 0, &root, &sorted);
+        } else {
+            bvh.collapse(&root, &sorted);
+        }
+        (bvh, idx)
     }
 
+    /// Appends the 4-wide node for binary interior node `b` (and its subtree); returns its index.
+    fn collapse(&mut self, b: &BNode, tris: &[Tri]) -> u32 {
+        // Open the largest-area interior child until there are four children.
+        let mut kids: Vec<&BNode> = match &b.kids {
+            Some(k) => vec![&k.0, &k.1],
+            None => vec![b],
+        };
+        while kids.len() < 4 {
+            let open = kids
+                .iter()
+                .enumerate()
+                .filter(|(_, k)| k.kids.is_some())
+                .max_by(|a, b| a.1.bb.area().total_cmp(&b.1.bb.area()).then(b.0.cmp(&a.0)))
+                .map(|(i, _)| i);
+            let Some(i) = open else { break };
+            let Some(k) = &kids[i].kids else { break };
+            kids[i] = &k.0;
+            kids.insert(i + 1, &k.1);
+        }
+        let ni = self.nodes.len();
+        self.nodes.push(Node4::EMPTY);
+        for (slot, k) in kids.iter().enumerate() {
+            self.set_child(ni, slot, k, tris);
+        }
+        ni as u32
+    }
+
+    fn set_child(&mut self, ni: usize, slot: usize, k: &BNode, tris: &[Tri]) {
+        let child = match k.leaf {
+            Some((first, count)) => {
+                let p = self.packets.len();
+                for chunk in tris[first as usize..(first + count) as usize].chunks(LANES) {
+                    let mut pk = Tri4 {
+                        p0: [[0.0; 4]; 3],
+                        e1: [[0.0; 4]; 3],
+                        e2: [[0.0; 4]; 3],
+                        prim: [u32::MAX; 4],
+                    };
+                    let base = first as usize + (self.packets.len() - p) * LANES;
+                    for (l, t) in chunk.iter().enumerate() {
+                        for a in 0..3 {
+                            pk.p0[a][l] = t.p0[a];
+                            pk.e1[a][l] = t.e1[a];
+                            pk.e2[a][l] = t.e2[a];
+                        }
+                        pk.prim[l] = (base + l) as u32;
+                    }
+                    self.packets.push(pk);
+                }
+                let np = self.packets.len() - p;
+                LEAF | ((np as u32 - 1) << LEAF_COUNT_SHIFT) | (p as u32 & LEAF_INDEX_MASK)
+            }
+            None => self.collapse(k, tris),
+        };
+        let n = &mut self.nodes[ni];
+        n.child[slot] = child;
+        for a in 0..3 {
+            n.b[a][slot] = k.bb.lo[a];
+            n.b[a + 3][slot] = k.bb.hi[a];
+        }
+    }
+
+    /// Number of 4-wide nodes.
     pub fn num_nodes(&self) -> usize {
         self.nodes.len()
     }
 
-    #[inline]
-    fn slab(node: &Node, ray: &Ray, tmax: f32) -> f32 {
-        let mut t0 = 0.0f32;
-        let mut t1 = tmax;
-        for k in 0..3 {
-            let o = ray.o[k];
-            let inv = ray.inv_d[k];
-            let a = (node.min[k] - o) * inv;
-            let b = (node.max[k] - o) * inv;
-            let (near, far) = if a < b { (a, b) } else { (b, a) };
-            // NaN (0 * inf) comparisons fall through and keep the slab open.
-            t0 = if near > t0 { near } else { t0 };
-            t1 = if far < t1 { far } else { t1 };
-        }
-        if t0 <= t1 * 1.000_000_2 {
-            t0
-        } else {
-            f32::INFINITY
-        }
-    }
-
     /// Closest hit in `(tmin, tmax)`.
-    pub fn intersect(&self, tris: &[Tri], ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
-        self.traverse::<false>(tris, ray, tmin, tmax)
-    }
-
-    /// Whether anything is hit in `(tmin, tmax)`.
-    pub fn occluded(&self, tris: &[Tri], ray: &Ray, tmin: f32, tmax: f32) -> bool {
-        self.traverse::<true>(tris, ray, tmin, tmax).is_some()
-    }
-
-    fn traverse<const ANY: bool>(&self, tris: &[Tri], ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
-        if self.nodes.is_empty() {
-            return None;
-        }
-        let mut best: Option<Hit> = None;
-        let mut tmax = tmax;
-        let mut stack = [0u32; 64];
-        let mut sp = 0usize;
-        let mut ni = 0usize;
-        if Self::slab(&self.nodes[0], ray, tmax) == f32::INFINITY {
-            return None;
-        }
-        loop {
-            let node = &self.nodes[ni];
-            if node.count > 0 {
-                let first = node.offset as usize;
-                for p in first..first + node.count as usize {
-                    if let Some((t, b1, b2)) = intersect_tri(&tris[p], ray, tmin, tmax) {
-                        tmax = t;
-                        best = Some(Hit {
-                            t,
-                            b1,
-                            b2,
-                            prim: p as u32,
-                        });
-                        if ANY {
-                            return best;
-                        }
-                    }
-                }
-            } else {
-                let (l, r) = (ni + 1, node.offset as usize);
-                let tl = Self::slab(&self.nodes[l], ray, tmax);
-                let tr = Self::slab(&self.nodes[r], ray, tmax);
-                let (near, far, tn, tf) = if tl <= tr { (l, r, tl, tr) } else { (r, l, tr, tl) };
-                if tn != f32::INFINITY {
-                    if tf != f32::INFINITY && sp < stack.len() {
-                        stack[sp] = far as u32;
-                        sp += 1;
-                    }
-                    ni = near;
-                    continue;
-                }
-            }
-            if sp == 0 {
-                break;
-            }
-            sp -= 1;
-            ni = stack[sp] as usize;
+    pub fn intersect(&self, ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
+        let mut best = None;
+        if !self.nodes.is_empty() {
+            self.traverse::<false>(0, ray, tmin, tmax, &mut best);
         }
         best
     }
+
+    /// Whether anything is hit in `(tmin, tmax)`.
+    pub fn occluded(&self, ray: &Ray, tmin: f32, tmax: f32) -> bool {
+        let mut best = None;
+        !self.nodes.is_empty() && self.traverse::<true>(0, ray, tmin, tmax, &mut best)
+    }
+
+    /// Traverses the subtree under child code `start`, updating `best` (hits closer than
+    /// `tmax` and the current best only). With `ANY`, returns `true` at the first hit.
+    fn traverse<const ANY: bool>(&self, start: u32, ray: &Ray, tmin: f32, tmax: f32, best: &mut Option<Hit>) -> bool {
+        let mut tmax = match best {
+            Some(h) => h.t.min(tmax),
+            None => tmax,
+        };
+        let o = [ray.o.x, ray.o.y, ray.o.z];
+        let inv = [ray.inv_d.x, ray.inv_d.y, ray.inv_d.z];
+        // Row of each axis's near and far planes in `Node4::b`.
+        let near: [usize; 3] = std::array::from_fn(|a| if inv[a] >= 0.0 { a } else { a + 3 });
+        let far: [usize; 3] = std::array::from_fn(|a| if inv[a] >= 0.0 { a + 3 } else { a });
+        let mut stack_c = [0u32; STACK];
+        let mut stack_t = [0f32; STACK];
+        let mut sp = 0usize;
+        let mut cur = start;
+        loop {
+            if cur & LEAF == 0 {
+                let n = &self.nodes[cur as usize];
+                let (nx, ny, nz) = (&n.b[near[0]], &n.b[near[1]], &n.b[near[2]]);
+                let (fx, fy, fz) = (&n.b[far[0]], &n.b[far[1]], &n.b[far[2]]);
+                let mut tn = [0f32; 4];
+                let mut hit = [false; 4];
+                for i in 0..4 {
+                    let t0x = (nx[i] - o[0]) * inv[0];
+                    let t0y = (ny[i] - o[1]) * inv[1];
+                    let t0z = (nz[i] - o[2]) * inv[2];
+                    let t1x = (fx[i] - o[0]) * inv[0];
+                    let t1y = (fy[i] - o[1]) * inv[1];
+                    let t1z = (fz[i] - o[2]) * inv[2];
+                    // NaN (0 · ∞) comparisons keep the accumulated value: the slab stays open.
+                    let mut t0 = 0.0f32;
+                    t0 = if t0x > t0 { t0x } else { t0 };
+                    t0 = if t0y > t0 { t0y } else { t0 };
+                    t0 = if t0z > t0 { t0z } else { t0 };
+                    let mut t1 = tmax;
+                    t1 = if t1x < t1 { t1x } else { t1 };
+                    t1 = if t1y < t1 { t1y } else { t1 };
+                    t1 = if t1z < t1 { t1z } else { t1 };
+                    tn[i] = t0;
+                    hit[i] = t0 <= t1 * 1.000_000_2;
+                }
+                let mask = (hit[0] as u32) | (hit[1] as u32) << 1 | (hit[2] as u32) << 2 | (hit[3] as u32) << 3;
+                match mask.count_ones() {
+                    0 => {}
+                    1 => {
+                        cur = n.child[mask.trailing_zeros() as usize];
+                        continue;
+                    }
+                    k => {
+                        // Hit children, then (closest-hit only) sorted nearest first.
+                        let mut c = [0u32; 4];
+                        let mut t = [0f32; 4];
+                        let mut m = mask;
+                        for j in 0..k as usize {
+                            let i = m.trailing_zeros() as usize;
+                            m &= m - 1;
+                            c[j] = n.child[i];
+                            t[j] = tn[i];
+                        }
+                        if !ANY {
+                            for j in 1..k as usize {
+                                let (cj, tj) = (c[j], t[j]);
+                                let mut i = j;
+                                while i > 0 && t[i - 1] > tj {
+                                    c[i] = c[i - 1];
+                                    t[i] = t[i - 1];
+                                    i -= 1;
+                                }
+                                c[i] = cj;
+                                t[i] = tj;
+                            }
+                        }
+                        for j in (1..k as usize).rev() {
+                            if sp < STACK {
+                                stack_c[sp] = c[j];
+                                stack_t[sp] = t[j];
+                                sp += 1;
+                            } else if self.traverse::<ANY>(c[j], ray, tmin, tmax, best) {
+                                return true;
+                            } else if let Some(h) = best {
+                                tmax = h.t;
+                            }
+                        }
+                        cur = c[0];
+                        continue;
+                    }
+                }
+            } else if cur != EMPTY {
+                let first = (cur & LEAF_INDEX_MASK) as usize;
+                let count = ((cur & !LEAF) >> LEAF_COUNT_SHIFT) as usize + 1;
+                for pk in &self.packets[first..first + count] {
+                    if let Some(h) = intersect_tri4(pk, ray, tmin, tmax) {
+                        tmax = h.t;
+                        *best = Some(h);
+                        if ANY {
+                            return true;
+                        }
+                    }
+                }
+            }
+            // Pop the next entry that can still hold a closer hit.
+            loop {
+                if sp == 0 {
+                    return best.is_some();
+                }
+                sp -= 1;
+                if ANY || stack_t[sp] <= tmax {
+                    cur = stack_c[sp];
+                    break;
+                }
+            }
+        }
+    }
+}
+
+/// [`intersect_tri`] on four triangles at once: the closest hit in `(tmin, tmax)` (the lowest
+/// lane among equal distances).
+#[inline(always)]
+fn intersect_tri4(pk: &Tri4, ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
+    let (d, o) = (ray.d, ray.o);
+    let mut t = [0f32; 4];
+    let mut b1 = [0f32; 4];
+    let mut b2 = [0f32; 4];
+    let mut ok = [false; 4];
+    for i in 0..4 {
+        let (e1x, e1y, e1z) = (pk.e1[0][i], pk.e1[1][i], pk.e1[2][i]);
+        let (e2x, e2y, e2z) = (pk.e2[0][i], pk.e2[1][i], pk.e2[2][i]);
+        // Same operations, same order as `intersect_tri`.
+        let px = d.y * e2z - d.z * e2y;
+        let py = d.z * e2x - d.x * e2z;
+        let pz = d.x * e2y - d.y * e2x;
+        let det = e1x * px + e1y * py + e1z * pz;
+        let inv = 1.0 / det;
+        let sx = o.x - pk.p0[0][i];
+        let sy = o.y - pk.p0[1][i];
+        let sz = o.z - pk.p0[2][i];
+        let u = (sx * px + sy * py + sz * pz) * inv;
+        let qx = sy * e1z - sz * e1y;
+        let qy = sz * e1x - sx * e1z;
+        let qz = sx * e1y - sy * e1x;
+        let v = (d.x * qx + d.y * qy + d.z * qz) * inv;
+        let tt = (e2x * qx + e2y * qy + e2z * qz) * inv;
+        ok[i] =
+            (det.abs() >= 1e-20) & (0.0..=1.0).contains(&u) & (v >= 0.0) & (u + v <= 1.0) & (tt > tmin) & (tt < tmax);
+        t[i] = tt;
+        b1[i] = u;
+        b2[i] = v;
+    }
+    let mut best: Option<Hit> = None;
+    let mut tb = tmax;
+    for i in 0..4 {
+        if ok[i] && t[i] < tb {
+            tb = t[i];
+            best = Some(Hit {
+                t: t[i],
+                b1: b1[i],
+                b2: b2[i],
+                prim: pk.prim[i],
+            });
+        }
+    }
+    best
 }
 
 /// Möller–Trumbore; returns `(t, b1, b2)` for a hit in `(tmin, tmax)`. Two-sided.
@@ -328,43 +578,143 @@ mod tests {
     use super::*;
     use pixl_core::Rng;
 
-    #[test]
-    fn matches_brute_force() {
-        let mut rng = Rng::new(5);
+    /// Random triangle soup in a 10 m cube.
+    fn soup(n: usize, seed: u64) -> Vec<Tri> {
+        let mut rng = Rng::new(seed);
         let mut r = || rng.uniform(-1.0, 1.0);
-        let tris: Vec<Tri> = (0..2000)
-            .map(|_| {
-                let p0 = V3::new(r() * 5.0, r() * 5.0, r() * 5.0);
-                Tri {
-                    p0,
-                    e1: V3::new(r(), r(), r()) * 0.5,
-                    e2: V3::new(r(), r(), r()) * 0.5,
+        (0..n)
+            .map(|_| Tri {
+                p0: V3::new(r() * 5.0, r() * 5.0, r() * 5.0),
+                e1: V3::new(r(), r(), r()) * 0.5,
+                e2: V3::new(r(), r(), r()) * 0.5,
+            })
+            .collect()
+    }
+
+    /// A bumpy height field of `2 (n − 1)²` triangles sharing edges (like a depth mesh).
+    fn grid(n: usize) -> Vec<Tri> {
+        let p = |i: usize, j: usize| {
+            let (u, v) = (i as f32 / (n - 1) as f32, j as f32 / (n - 1) as f32);
+            V3::new(4.0 * u - 2.0, 4.0 * v - 2.0, 0.3 * (9.0 * u).sin() * (7.0 * v).cos())
+        };
+        let mut tris = Vec::new();
+        for j in 0..n - 1 {
+            for i in 0..n - 1 {
+                let (a, b, c, d) = (p(i, j), p(i + 1, j), p(i, j + 1), p(i + 1, j + 1));
+                tris.push(Tri {
+                    p0: a,
+                    e1: c - a,
+                    e2: b - a,
+                });
+                tris.push(Tri {
+                    p0: b,
+                    e1: c - b,
+                    e2: d - b,
+                });
+            }
+        }
+        tris
+    }
+
+    /// Closest hit over all triangles by brute force: `(t, b1, b2, index)`.
+    fn brute(tris: &[Tri], ray: &Ray, tmin: f32, tmax: f32) -> Option<(f32, f32, f32, usize)> {
+        let mut best: Option<(f32, f32, f32, usize)> = None;
+        for (i, t) in tris.iter().enumerate() {
+            if let Some((th, b1, b2)) = intersect_tri(t, ray, tmin, tmax) {
+                if best.is_none_or(|b| th < b.0) {
+                    best = Some((th, b1, b2, i));
                 }
+            }
+        }
+        best
+    }
+
+    /// Checks `n_rays` random rays (origins in the box, some on the surfaces, some with zero
+    /// direction components, random `(tmin, tmax)` windows) against the brute-force answer.
+    fn check(tris: &[Tri], n_rays: usize, seed: u64) -> usize {
+        let (bvh, perm) = Bvh::build(tris);
+        let sorted: Vec<Tri> = perm.iter().map(|&i| tris[i as usize]).collect();
+        let mut rng = Rng::new(seed);
+        let mut hits = 0;
+        for k in 0..n_rays {
+            let o = if k % 3 == 0 {
+                // On a random triangle, as for rays leaving a surface.
+                let t = &tris[rng.below(tris.len())];
+                let (a, b) = (rng.f32() * 0.5, rng.f32() * 0.5);
+                t.p0 + t.e1 * a + t.e2 * b
+            } else {
+                V3::new(rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0))
+            };
+            let mut d = V3::new(rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)) - o * 0.1;
+            match k % 7 {
+                0 => d.x = 0.0,
+                1 => {
+                    d.y = 0.0;
+                    d.z = 0.0;
+                }
+                _ => {}
+            }
+            let ray = Ray::new(o, d.normalize());
+            let (tmin, tmax) = match k % 4 {
+                0 => (1e-4, rng.uniform(0.5, 6.0)),
+                1 => (rng.uniform(0.0, 2.0), f32::INFINITY),
+                _ => (0.0, f32::INFINITY),
+            };
+            let want = brute(tris, &ray, tmin, tmax);
+            let got = bvh.intersect(&ray, tmin, tmax);
+            match (want, got) {
+                (None, None) => {}
+                (Some((t, b1, b2, i)), Some(h)) => {
+                    hits += 1;
+                    let j = perm[h.prim as usize] as usize;
+                    // Same arithmetic as `intersect_tri`: bit-identical distance.
+                    assert_eq!(t.to_bits(), h.t.to_bits(), "ray {k}: t {t} vs {}", h.t);
+                    if j == i {
+                        assert_eq!((b1, b2), (h.b1, h.b2), "ray {k}");
+                    } else {
+                        // A tie at exactly the same distance: the other triangle must be hit there.
+                        let other = intersect_tri(&tris[j], &ray, tmin, tmax).map(|x| x.0);
+                        assert_eq!(other, Some(t), "ray {k}: prim {j} instead of {i}");
+                    }
+                    assert_eq!(sorted[h.prim as usize].p0, tris[j].p0);
+                }
+                (w, g) => panic!("ray {k}: brute {w:?} vs bvh {g:?}"),
+            }
+            assert_eq!(want.is_some(), bvh.occluded(&ray, tmin, tmax), "ray {k}");
+        }
+        hits
+    }
+
+    #[test]
+    fn matches_brute_force_on_a_soup() {
+        let hits = check(&soup(3000, 5), 3000, 9);
+        assert!(hits > 600, "only {hits} hits: the test would not exercise much");
+    }
+
+    #[test]
+    fn matches_brute_force_on_a_height_field() {
+        let hits = check(&grid(60), 3000, 11);
+        assert!(hits > 300, "only {hits} hits");
+    }
+
+    #[test]
+    fn matches_brute_force_on_tiny_and_degenerate_inputs() {
+        for n in [1, 3, 4, 5, 9] {
+            check(&soup(n, n as u64), 300, 3);
+        }
+        // Many coincident triangles: no SAH split exists, so median splits build the tree.
+        let same: Vec<Tri> = (0..500)
+            .map(|i| Tri {
+                p0: V3::new(-1.0, -1.0, 0.001 * (i % 7) as f32),
+                e1: V3::new(2.0, 0.0, 0.0),
+                e2: V3::new(0.0, 2.0, 0.0),
             })
             .collect();
-        let (bvh, perm) = Bvh::build(&tris);
-        let sorted: Vec<Tri> = perm.iter().map(|&i| tris[i as usize]).collect();
-        let mut rng = Rng::new(9);
-        for _ in 0..500 {
-            let o = V3::new(rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0));
-            let d =
-                (V3::new(rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)) - o * 0.1).normalize();
-            let ray = Ray::new(o, d);
-            let brute = tris
-                .iter()
-                .enumerate()
-                .filter_map(|(i, t)| intersect_tri(t, &ray, 0.0, f32::INFINITY).map(|h| (h.0, i)))
-                .min_by(|a, b| a.0.total_cmp(&b.0));
-            let fast = bvh.intersect(&sorted, &ray, 0.0, f32::INFINITY);
-            match (brute, fast) {
-                (None, None) => {}
-                (Some((t, i)), Some(h)) => {
-                    assert!((t - h.t).abs() < 1e-5, "{t} vs {}", h.t);
-                    assert_eq!(perm[h.prim as usize] as usize, i);
-                }
-                (b, f) => panic!("brute {b:?} vs bvh {f:?}"),
-            }
-            assert_eq!(brute.is_some(), bvh.occluded(&sorted, &ray, 0.0, f32::INFINITY));
-        }
+        check(&same, 300, 4);
+        let (bvh, perm) = Bvh::build(&[]);
+        assert!(perm.is_empty());
+        let ray = Ray::new(V3::ZERO, V3::new(0.0, 0.0, 1.0));
+        assert!(bvh.intersect(&ray, 0.0, f32::INFINITY).is_none());
+        assert!(!bvh.occluded(&ray, 0.0, f32::INFINITY));
     }
 }

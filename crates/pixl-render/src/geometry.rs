@@ -284,7 +284,7 @@ impl Geometry {
 
     /// Closest surface along `ray` in `(tmin, tmax)`.
     pub fn intersect(&self, ray: &Ray, tmin: f32, tmax: f32) -> Option<SurfaceHit> {
-        let Hit { t, b1, b2, prim } = self.bvh.intersect(&self.tris, ray, tmin, tmax)?;
+        let Hit { t, b1, b2, prim } = self.bvh.intersect(ray, tmin, tmax)?;
         let a = &self.attrs[prim as usize];
         let b0 = 1.0 - b1 - b2;
         let tri = &self.tris[prim as usize];
@@ -308,7 +308,7 @@ impl Geometry {
     }
 
     pub fn occluded(&self, ray: &Ray, tmin: f32, tmax: f32) -> bool {
-        self.bvh.occluded(&self.tris, ray, tmin, tmax)
+        self.bvh.occluded(ray, tmin, tmax)
     }
 
     /// Centre and radius of a sphere bounding the geometry.
