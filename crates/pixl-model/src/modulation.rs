@@ -33,7 +33,11 @@ impl Modulation {
 
     /// `clip((1 + g) ⊙ src + b, 0, 1)`; `src`, `g`, `b` all `(B, 3, H, W)` f32.
     pub fn apply(src: &Tensor, g: &Tensor, b: &Tensor) -> Result<Tensor> {
-        let out = ((g + 1.0)?.mul(src)? + b)?;
-        out.clamp(0f32, 1f32)
+        Self::affine(src, g, b)?.clamp(0f32, 1f32)
+    }
+
+    /// The affine step before the clip, `(1 + g) ⊙ src + b` (what training takes its pixel loss on).
+    pub fn affine(src: &Tensor, g: &Tensor, b: &Tensor) -> Result<Tensor> {
+        (g + 1.0)?.mul(src)? + b
     }
 }

@@ -65,12 +65,17 @@ pub struct LossTerms {
 
 /// `L1 + weight · perceptual` (the perceptual term only when `perceptual` is given and
 /// `weight > 0`).
+///
+/// `pred` is the network's output **before** the final clip (`PixlRelight::forward_unclipped`):
+/// the L1 term is taken on it, so saturated pixels keep a gradient (for targets in `[0, 1]` it
+/// bounds the L1 of the clipped output from above, with the same minimisers); the perceptual
+/// term sees the clipped image, as VGG would at inference.
 pub fn loss(pred: &Tensor, target: &Tensor, perceptual: Option<&Perceptual>, weight: f64) -> Result<LossTerms> {
     let l1 = (pred - target)?.abs()?.mean_all()?;
     let l1_value = l1.to_scalar::<f32>()?;
     match perceptual {
         Some(p) if weight > 0.0 => {
-            let d = p.distance(pred, target)?;
+            let d = p.distance(&pred.clamp(0f32, 1f32)?, target)?;
             let d_value = d.to_scalar::<f32>()?;
             Ok(LossTerms {
                 total: (l1 + (d * weight)?)?,
@@ -83,5 +88,49 @@ pub fn loss(pred: &Tensor, target: &Tensor, perceptual: Option<&Perceptual>, wei
             l1: l1_value,
             perceptual: None,
         }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Var;
+
+    /// A pixel pushed past the clip still gets the L1 gradient `sign(x − t)/n`, where a loss on
+    /// the clipped output would give exactly 0; unsaturated pixels get the same gradient either way.
+    #[test]
+    fn saturated_pixels_keep_their_gradient() {
+        let dev = Device::Cpu;
+        let x = Var::from_vec(vec![1.5f32, -0.25, 0.3, 0.9], (1, 1, 2, 2), &dev).unwrap();
+        let t = Tensor::from_vec(vec![0.5f32, 0.2, 0.6, 0.4], (1, 1, 2, 2), &dev).unwrap();
+        let terms = loss(x.as_tensor(), &t, None, 0.0).unwrap();
+        // Hand value: (1.0 + 0.45 + 0.3 + 0.5) / 4.
+        assert!((terms.l1 - 2.25 / 4.0).abs() < 1e-6, "{}", terms.l1);
+        let g = terms
+            .total
+            .backward()
+            .unwrap()
+            .get(x.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap();
+        let g = g.to_vec1::<f32>().unwrap();
+        assert_eq!(g, vec![0.25, -0.25, -0.25, 0.25]);
+        // The clipped loss would have frozen the two saturated pixels.
+        let clipped = (x.as_tensor().clamp(0f32, 1f32).unwrap() - &t)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .mean_all()
+            .unwrap();
+        let gc = clipped
+            .backward()
+            .unwrap()
+            .get(x.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap();
+        let gc = gc.to_vec1::<f32>().unwrap();
+        assert_eq!(&gc[..2], &[0.0, 0.0]);
     }
 }

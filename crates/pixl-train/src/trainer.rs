@@ -224,7 +224,7 @@ impl Trainer {
                 let seeds = self.augment_seeds(micro_step, samples.len());
                 ct = pixl_intrinsics::augment::corrupt(&ct, &seeds, &pixl_intrinsics::augment::AugmentConfig::paper())?;
             }
-            let pred = self.model.forward(&src, &ct)?;
+            let pred = self.model.forward_unclipped(&src, &ct)?;
             let terms = loss(&pred, &tgt, self.perceptual.as_ref(), self.cfg.loss.perceptual_weight)?;
             let total = (&terms.total / accum as f64)?;
             loss_sum += total.to_scalar::<f32>()?;
