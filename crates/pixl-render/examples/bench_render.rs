@@ -89,9 +89,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let comb = film.pass("Combined").ok_or("no Combined")?;
     let mean: f64 = comb.data.iter().map(|v| *v as f64).sum::<f64>() / comb.data.len() as f64;
     println!(
-        "{} triangles, {} BVH nodes, {}x{} @ {} spp, {} threads: load+BVH {:.2} s (CPU {:.2} s), render {:.2} s (CPU {:.2} s) (mean Combined {:.4})",
+        "{} triangles, {} BVH nodes, {} leaf packets, {}x{} @ {} spp, {} threads: load+BVH {:.2} s (CPU {:.2} s), render {:.2} s (CPU {:.2} s) (mean Combined {:.4})",
         r.geom.tris.len(),
         r.geom.bvh.num_nodes(),
+        r.geom.bvh.num_packets(),
         film.width,
         film.height,
         spp,

@@ -53,13 +53,15 @@ impl Ray {
     }
 }
 
-/// A ray–triangle hit: distance, barycentrics of vertices 1 and 2, primitive index.
+/// A ray–triangle hit: distance, barycentrics of vertices 1 and 2, primitive index, and the
+/// point `p0 + e1·b1 + e2·b2` (computed from the leaf data, saving a fetch of the triangle).
 #[derive(Clone, Copy, Debug)]
 pub struct Hit {
     pub t: f32,
     pub b1: f32,
     pub b2: f32,
     pub prim: u32,
+    pub p: V3,
 }
 
 /// Four triangles, structure of arrays: `p0[axis][lane]`, `e1`, `e2` likewise, and the index
@@ -121,13 +123,19 @@ impl Aabb {
         lo: V3::new(f32::INFINITY, f32::INFINITY, f32::INFINITY),
         hi: V3::new(f32::NEG_INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY),
     };
+    // Plain compare-selects (the inputs are finite): cheaper than `f32::min`'s NaN rules.
     fn grow(&mut self, o: &Aabb) {
-        self.lo = self.lo.min(o.lo);
-        self.hi = self.hi.max(o.hi);
+        self.grow_lo_hi(o.lo, o.hi);
     }
     fn grow_p(&mut self, p: V3) {
-        self.lo = self.lo.min(p);
-        self.hi = self.hi.max(p);
+        self.grow_lo_hi(p, p);
+    }
+    #[inline]
+    fn grow_lo_hi(&mut self, lo: V3, hi: V3) {
+        let mn = |a: f32, b: f32| if b < a { b } else { a };
+        let mx = |a: f32, b: f32| if b > a { b } else { a };
+        self.lo = V3::new(mn(self.lo.x, lo.x), mn(self.lo.y, lo.y), mn(self.lo.z, lo.z));
+        self.hi = V3::new(mx(self.hi.x, hi.x), mx(self.hi.y, hi.y), mx(self.hi.z, hi.z));
     }
     fn area(&self) -> f32 {
         let d = self.hi - self.lo;
@@ -147,7 +155,7 @@ const PAR_MIN: usize = 8192;
 /// `MEDIAN_DEPTH + log2(n)` whatever the geometry (bounds the traversal stack's use).
 const MEDIAN_DEPTH: usize = 40;
 /// Traversal stack entries; deeper pushes fall back to recursion (never reached in practice).
-const STACK: usize = 64;
+const STACK: usize = 40;
 
 /// A node of the temporary binary tree.
 struct BNode {
@@ -366,6 +374,11 @@ impl Bvh {
         self.nodes.len()
     }
 
+    /// Number of 4-triangle leaf packets (padding lanes included).
+    pub fn num_packets(&self) -> usize {
+        self.packets.len()
+    }
+
     /// Closest hit in `(tmin, tmax)`.
     pub fn intersect(&self, ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
         let mut best = None;
@@ -391,8 +404,9 @@ impl Bvh {
         let o = [ray.o.x, ray.o.y, ray.o.z];
         let inv = [ray.inv_d.x, ray.inv_d.y, ray.inv_d.z];
         // Row of each axis's near and far planes in `Node4::b`.
-        let near: [usize; 3] = std::array::from_fn(|a| if inv[a] >= 0.0 { a } else { a + 3 });
-        let far: [usize; 3] = std::array::from_fn(|a| if inv[a] >= 0.0 { a + 3 } else { a });
+        let neg: [usize; 3] = std::array::from_fn(|a| (inv[a] < 0.0) as usize);
+        let near: [usize; 3] = std::array::from_fn(|a| a + 3 * neg[a]);
+        let far: [usize; 3] = std::array::from_fn(|a| a + 3 - 3 * neg[a]);
         let mut stack_c = [0u32; STACK];
         let mut stack_t = [0f32; STACK];
         let mut sp = 0usize;
@@ -428,6 +442,16 @@ impl Bvh {
                     0 => {}
                     1 => {
                         cur = n.child[mask.trailing_zeros() as usize];
+                        continue;
+                    }
+                    2 if sp < STACK => {
+                        let i0 = mask.trailing_zeros() as usize;
+                        let i1 = (mask & (mask - 1)).trailing_zeros() as usize;
+                        let (a, b) = if ANY || tn[i0] <= tn[i1] { (i0, i1) } else { (i1, i0) };
+                        stack_c[sp] = n.child[b];
+                        stack_t[sp] = tn[b];
+                        sp += 1;
+                        cur = n.child[a];
                         continue;
                     }
                     k => {
@@ -530,20 +554,26 @@ fn intersect_tri4(pk: &Tri4, ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
         b1[i] = u;
         b2[i] = v;
     }
-    let mut best: Option<Hit> = None;
+    if !(ok[0] | ok[1] | ok[2] | ok[3]) {
+        return None;
+    }
+    let mut best: Option<(usize, f32)> = None;
     let mut tb = tmax;
     for i in 0..4 {
         if ok[i] && t[i] < tb {
             tb = t[i];
-            best = Some(Hit {
-                t: t[i],
-                b1: b1[i],
-                b2: b2[i],
-                prim: pk.prim[i],
-            });
+            best = Some((i, tb));
         }
     }
-    best
+    let (i, t) = best?;
+    let lane = |a: &[[f32; 4]; 3]| V3::new(a[0][i], a[1][i], a[2][i]);
+    Some(Hit {
+        t,
+        b1: b1[i],
+        b2: b2[i],
+        prim: pk.prim[i],
+        p: lane(&pk.p0) + lane(&pk.e1) * b1[i] + lane(&pk.e2) * b2[i],
+    })
 }
 
 /// Möller–Trumbore; returns `(t, b1, b2)` for a hit in `(tmin, tmax)`. Two-sided.
@@ -677,6 +707,8 @@ mod tests {
                         assert_eq!(other, Some(t), "ray {k}: prim {j} instead of {i}");
                     }
                     assert_eq!(sorted[h.prim as usize].p0, tris[j].p0);
+                    let tj = &tris[j];
+                    assert_eq!(h.p, tj.p0 + tj.e1 * h.b1 + tj.e2 * h.b2, "ray {k}");
                 }
                 (w, g) => panic!("ray {k}: brute {w:?} vs bvh {g:?}"),
             }

@@ -284,11 +284,9 @@ impl Geometry {
 
     /// Closest surface along `ray` in `(tmin, tmax)`.
     pub fn intersect(&self, ray: &Ray, tmin: f32, tmax: f32) -> Option<SurfaceHit> {
-        let Hit { t, b1, b2, prim } = self.bvh.intersect(ray, tmin, tmax)?;
+        let Hit { t, b1, b2, prim, p } = self.bvh.intersect(ray, tmin, tmax)?;
         let a = &self.attrs[prim as usize];
         let b0 = 1.0 - b1 - b2;
-        let tri = &self.tris[prim as usize];
-        let p = tri.p0 + tri.e1 * b1 + tri.e2 * b2;
         let mut ns = (a.n[0] * b0 + a.n[1] * b1 + a.n[2] * b2).normalize();
         if !ns.is_finite() || ns.is_zero() {
             ns = a.ng;
