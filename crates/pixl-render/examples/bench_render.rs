@@ -2,8 +2,9 @@
 //! ~500 k-triangle depth-like mesh (a bumpy height field unprojected in front of the camera,
 //! as `pixl reconstruct` makes) lit by one area light and a constant environment.
 //!
-//! `cargo run --release -p pixl-render --example bench_render [-- GRID SPP]` (GRID = vertices
-//! per side, default 500 → 498 002 triangles).
+//! `cargo run --release -p pixl-render --example bench_render [-- GRID SPP [render-only]]`
+//! (GRID = vertices per side, default 500 → 498 002 triangles; `render-only` skips the ray
+//! timings, e.g. for profiling).
 //!
 //! After the render it also times ray casting alone on the main thread (a load-independent
 //! figure: rays per second per thread) for three ray kinds made from the camera view: primary
@@ -103,7 +104,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         c_render,
         mean
     );
-    ray_throughput(&r);
+    if args.get(3).map(String::as_str) != Some("render-only") {
+        ray_throughput(&r);
+    }
     Ok(())
 }
 
@@ -137,6 +140,72 @@ fn ray_throughput(r: &Renderer) {
     };
     let closest = |ray: &Ray, tmax: f32| g.intersect(ray, 0.0, tmax).is_some();
     time("primary", &primary, &closest);
+    // The render's camera rays: 16 jittered samples per pixel, in pixel order (64 rows), one
+    // by one and as one packet per pixel.
+    let mut pixel_rays = Vec::new();
+    for y in 0..64.min(r.height) {
+        for x in 0..r.width {
+            for _ in 0..16 {
+                pixel_rays.push(r.camera.ray(x as f32 + rng.f32(), y as f32 + rng.f32()));
+            }
+        }
+    }
+    let pix: Vec<(Ray, f32)> = pixel_rays.iter().map(|r| (*r, f32::INFINITY)).collect();
+    // From each camera hit, a cosine bounce and a light-sample shadow ray (16 per pixel).
+    let (mut pix_bounce, mut pix_shadow) = (Vec::new(), Vec::new());
+    for (ray, _) in &pix {
+        let h = g.intersect(ray, 0.0, f32::INFINITY);
+        let Some(h) = h else { continue };
+        let n = if h.ng.dot(ray.d) < 0.0 { h.ng } else { -h.ng };
+        let o = h.p + n * 1e-4 * (1.0 + h.p.x.abs().max(h.p.y.abs()).max(h.p.z.abs()));
+        let f = Frame::new(n);
+        pix_bounce.push((
+            Ray::new(o, f.to_world(cosine_hemisphere(rng.f32(), rng.f32()))),
+            f32::INFINITY,
+        ));
+        let ls = r.lights.sample(g, h.p, rng.f32(), rng.f32(), rng.f32());
+        let (d, tmax) = match ls {
+            Some(ls) if ls.dist.is_finite() => (ls.wi, ls.dist * (1.0 - 1e-3)),
+            Some(ls) => (ls.wi, f32::INFINITY),
+            None => (n, f32::INFINITY),
+        };
+        pix_shadow.push((Ray::new(o, d), tmax));
+    }
+    let packets = |name: &str, rays: &[(Ray, f32)], any: bool| {
+        let (mut wall, mut cpu, mut hits) = (f64::INFINITY, f64::INFINITY, 0);
+        let r16: Vec<Ray> = rays.iter().map(|p| p.0).collect();
+        let t16: Vec<f32> = rays.iter().map(|p| p.1).collect();
+        for _ in 0..3 {
+            let (t, c) = (Instant::now(), thread_cpu_s());
+            let mut out = [None; 16];
+            let mut occ = [false; 16];
+            hits = 0;
+            for (rays, tmax) in r16.chunks(16).zip(t16.chunks(16)) {
+                if any {
+                    g.bvh.occluded_packet(rays, 0.0, tmax, &mut occ);
+                    hits += occ.iter().filter(|h| **h).count();
+                } else {
+                    g.intersect_packet(rays, 0.0, tmax, &mut out);
+                    hits += out.iter().filter(|h| h.is_some()).count();
+                }
+            }
+            wall = wall.min(t.elapsed().as_secs_f64());
+            cpu = cpu.min(thread_cpu_s() - c);
+        }
+        println!(
+            "  {name:<7} {:>7} rays, {:5.1}% hit: {:.2} Mrays/s wall, {:.2} Mrays per CPU-second (best of 3; packets of 16)",
+            rays.len(),
+            100.0 * hits as f64 / rays.len().max(1) as f64,
+            rays.len() as f64 / wall / 1e6,
+            rays.len() as f64 / cpu / 1e6
+        );
+    };
+    time("pix16", &pix, &closest);
+    packets("pix16p", &pix, false);
+    time("bnc16", &pix_bounce, &closest);
+    packets("bnc16p", &pix_bounce, false);
+    time("shd16", &pix_shadow, &|ray, tmax| g.occluded(ray, 0.0, tmax));
+    packets("shd16p", &pix_shadow, true);
     let mut bounce = Vec::new();
     let mut shadow = Vec::new();
     for (ray, _) in &primary {

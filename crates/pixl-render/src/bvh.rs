@@ -380,23 +380,83 @@ impl Bvh {
     }
 
     /// Closest hit in `(tmin, tmax)`.
+    #[inline]
     pub fn intersect(&self, ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
+        self.intersect_isa(Isa::detect(), ray, tmin, tmax)
+    }
+
+    /// Whether anything is hit in `(tmin, tmax)`.
+    #[inline]
+    pub fn occluded(&self, ray: &Ray, tmin: f32, tmax: f32) -> bool {
+        self.occluded_isa(Isa::detect(), ray, tmin, tmax)
+    }
+
+    /// [`Bvh::intersect`] with the traversal compiled for `isa` (which must be available:
+    /// [`Isa::available`]; an unavailable one falls back to [`Isa::Base`]).
+    pub fn intersect_isa(&self, isa: Isa, ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
         let mut best = None;
         if !self.nodes.is_empty() {
-            self.traverse::<false>(0, ray, tmin, tmax, &mut best);
+            self.traverse::<false>(isa, 0, ray, tmin, tmax, &mut best);
         }
         best
     }
 
-    /// Whether anything is hit in `(tmin, tmax)`.
-    pub fn occluded(&self, ray: &Ray, tmin: f32, tmax: f32) -> bool {
+    /// [`Bvh::occluded`] with the traversal compiled for `isa` (see [`Bvh::intersect_isa`]).
+    pub fn occluded_isa(&self, isa: Isa, ray: &Ray, tmin: f32, tmax: f32) -> bool {
         let mut best = None;
-        !self.nodes.is_empty() && self.traverse::<true>(0, ray, tmin, tmax, &mut best)
+        !self.nodes.is_empty() && self.traverse::<true>(isa, 0, ray, tmin, tmax, &mut best)
+    }
+
+    /// [`Bvh::traverse_body`] compiled for `isa`.
+    #[inline]
+    fn traverse<const ANY: bool>(
+        &self,
+        isa: Isa,
+        start: u32,
+        ray: &Ray,
+        tmin: f32,
+        tmax: f32,
+        best: &mut Option<Hit>,
+    ) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if isa == Isa::Avx2 && Isa::detect() == Isa::Avx2 {
+            // SAFETY: `traverse_avx2` only requires the CPU features it is compiled for, and
+            // `Isa::detect` returned `Avx2` only after `is_x86_feature_detected!` confirmed
+            // every one of them (AVX2, FMA, BMI1, BMI2, LZCNT, POPCNT) on this CPU.
+            return unsafe { self.traverse_avx2::<ANY>(start, ray, tmin, tmax, best) };
+        }
+        let _ = isa;
+        self.traverse_body::<ANY>(start, ray, tmin, tmax, best)
+    }
+
+    /// The traversal with AVX2 (VEX three-operand SIMD, `popcnt`/`tzcnt`) enabled. FMA is
+    /// enabled too but never contracted implicitly by rustc, so results are bit-identical to
+    /// the baseline build.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn traverse_avx2<const ANY: bool>(
+        &self,
+        start: u32,
+        ray: &Ray,
+        tmin: f32,
+        tmax: f32,
+        best: &mut Option<Hit>,
+    ) -> bool {
+        self.traverse_body::<ANY>(start, ray, tmin, tmax, best)
     }
 
     /// Traverses the subtree under child code `start`, updating `best` (hits closer than
     /// `tmax` and the current best only). With `ANY`, returns `true` at the first hit.
-    fn traverse<const ANY: bool>(&self, start: u32, ray: &Ray, tmin: f32, tmax: f32, best: &mut Option<Hit>) -> bool {
+    /// Always inlined into [`Bvh::traverse`]'s per-ISA wrappers.
+    #[inline(always)]
+    fn traverse_body<const ANY: bool>(
+        &self,
+        start: u32,
+        ray: &Ray,
+        tmin: f32,
+        tmax: f32,
+        best: &mut Option<Hit>,
+    ) -> bool {
         let mut tmax = match best {
             Some(h) => h.t.min(tmax),
             None => tmax,
@@ -448,6 +508,7 @@ impl Bvh {
                         let i0 = mask.trailing_zeros() as usize;
                         let i1 = (mask & (mask - 1)).trailing_zeros() as usize;
                         let (a, b) = if ANY || tn[i0] <= tn[i1] { (i0, i1) } else { (i1, i0) };
+                        self.prefetch(n.child[b]);
                         stack_c[sp] = n.child[b];
                         stack_t[sp] = tn[b];
                         sp += 1;
@@ -480,10 +541,11 @@ impl Bvh {
                         }
                         for j in (1..k as usize).rev() {
                             if sp < STACK {
+                                self.prefetch(c[j]);
                                 stack_c[sp] = c[j];
                                 stack_t[sp] = t[j];
                                 sp += 1;
-                            } else if self.traverse::<ANY>(c[j], ray, tmin, tmax, best) {
+                            } else if self.traverse_deep::<ANY>(c[j], ray, tmin, tmax, best) {
                                 return true;
                             } else if let Some(h) = best {
                                 tmax = h.t;
@@ -518,6 +580,416 @@ impl Bvh {
                 }
             }
         }
+    }
+}
+
+impl Bvh {
+    /// Stack overflow fallback of [`Bvh::traverse_body`] (a separate, never-inlined function,
+    /// so the hot loop is not recursive): the baseline build, whatever the caller's ISA.
+    #[inline(never)]
+    fn traverse_deep<const ANY: bool>(
+        &self,
+        start: u32,
+        ray: &Ray,
+        tmin: f32,
+        tmax: f32,
+        best: &mut Option<Hit>,
+    ) -> bool {
+        self.traverse_body::<ANY>(start, ray, tmin, tmax, best)
+    }
+}
+
+impl Bvh {
+    /// Hints the CPU to start loading the node or first leaf packet of child code `c` (the
+    /// traversal is bound by the latency of these loads; pushed siblings load meanwhile).
+    #[inline(always)]
+    fn prefetch(&self, c: u32) {
+        #[cfg(target_arch = "x86_64")]
+        {
+            let p: *const u8 = if c & LEAF == 0 {
+                match self.nodes.get(c as usize) {
+                    Some(n) => (n as *const Node4).cast(),
+                    None => return,
+                }
+            } else {
+                match self.packets.get((c & LEAF_INDEX_MASK) as usize) {
+                    Some(t) => (t as *const Tri4).cast(),
+                    None => return,
+                }
+            };
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            // SAFETY: a prefetch is only a hint: it never faults and has no effect visible to
+            // the program, and `p` points into a live allocation anyway (it comes from a
+            // reference to an element of `self.nodes` / `self.packets`).
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(p.cast());
+                _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64).cast());
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = c;
+    }
+}
+
+/// Rays per packet of [`Bvh::intersect_packet`] / [`Bvh::occluded_packet`].
+pub const PACKET: usize = 16;
+
+/// Up to [`PACKET`] rays, structure of arrays, for packet traversal; unused lanes are inactive.
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct RayPack {
+    o: [[f32; PACKET]; 3],
+    d: [[f32; PACKET]; 3],
+    inv: [[f32; PACKET]; 3],
+    /// Per axis, whether the direction is negative (the near plane is the box's `hi`).
+    neg: [[bool; PACKET]; 3],
+    /// Current far limit per lane (the closest hit so far).
+    tmax: [f32; PACKET],
+    /// Closest hit so far per lane: barycentrics and (packet index, lane) of the triangle.
+    b1: [f32; PACKET],
+    b2: [f32; PACKET],
+    pk: [u32; PACKET],
+    lane: [u32; PACKET],
+    /// Lanes that found a hit.
+    found: u32,
+}
+
+impl RayPack {
+    fn new(rays: &[Ray], tmax: &[f32]) -> (RayPack, u32) {
+        let mut p = RayPack {
+            o: [[0.0; PACKET]; 3],
+            d: [[0.0; PACKET]; 3],
+            inv: [[0.0; PACKET]; 3],
+            neg: [[false; PACKET]; 3],
+            tmax: [f32::NEG_INFINITY; PACKET],
+            b1: [0.0; PACKET],
+            b2: [0.0; PACKET],
+            pk: [0; PACKET],
+            lane: [0; PACKET],
+            found: 0,
+        };
+        let mut act = 0u32;
+        for (r, (ray, &tm)) in rays.iter().zip(tmax).take(PACKET).enumerate() {
+            for a in 0..3 {
+                p.o[a][r] = ray.o[a];
+                p.d[a][r] = ray.d[a];
+                p.inv[a][r] = ray.inv_d[a];
+                p.neg[a][r] = ray.inv_d[a] < 0.0;
+            }
+            p.tmax[r] = tm;
+            act |= 1 << r;
+        }
+        (p, act)
+    }
+}
+
+impl Bvh {
+    /// [`Bvh::intersect`] for each of `rays` (with far limits `tmax`), written to `out`; pairs
+    /// beyond the shortest of the three slices are not traced. The rays share one traversal
+    /// per [`PACKET`] of them, so coherent rays (e.g. the samples of one pixel) are cheaper
+    /// than one by one; the hits are [`Bvh::intersect`]'s (same arithmetic per ray).
+    pub fn intersect_packet(&self, rays: &[Ray], tmin: f32, tmax: &[f32], out: &mut [Option<Hit>]) {
+        self.intersect_packet_isa(Isa::detect(), rays, tmin, tmax, out)
+    }
+
+    /// [`Bvh::intersect_packet`] with the traversal compiled for `isa`.
+    pub fn intersect_packet_isa(&self, isa: Isa, rays: &[Ray], tmin: f32, tmax: &[f32], out: &mut [Option<Hit>]) {
+        for ((rays, tmax), out) in rays.chunks(PACKET).zip(tmax.chunks(PACKET)).zip(out.chunks_mut(PACKET)) {
+            let (mut p, act) = RayPack::new(rays, tmax);
+            if !self.nodes.is_empty() {
+                self.traverse_packet::<false>(isa, 0, act, &mut p, tmin);
+            }
+            for (r, o) in out.iter_mut().enumerate().take(rays.len().min(tmax.len())) {
+                *o = (p.found >> r & 1 != 0).then(|| {
+                    let pk = &self.packets[p.pk[r] as usize];
+                    let i = p.lane[r] as usize;
+                    let lane = |a: &[[f32; 4]; 3]| V3::new(a[0][i], a[1][i], a[2][i]);
+                    let (b1, b2) = (p.b1[r], p.b2[r]);
+                    Hit {
+                        t: p.tmax[r],
+                        b1,
+                        b2,
+                        prim: pk.prim[i],
+                        p: lane(&pk.p0) + lane(&pk.e1) * b1 + lane(&pk.e2) * b2,
+                    }
+                });
+            }
+        }
+    }
+
+    /// [`Bvh::occluded`] for each of `rays` (with far limits `tmax`), written to `out`, sharing
+    /// traversals as [`Bvh::intersect_packet`] does.
+    pub fn occluded_packet(&self, rays: &[Ray], tmin: f32, tmax: &[f32], out: &mut [bool]) {
+        self.occluded_packet_isa(Isa::detect(), rays, tmin, tmax, out)
+    }
+
+    /// [`Bvh::occluded_packet`] with the traversal compiled for `isa`.
+    pub fn occluded_packet_isa(&self, isa: Isa, rays: &[Ray], tmin: f32, tmax: &[f32], out: &mut [bool]) {
+        for ((rays, tmax), out) in rays.chunks(PACKET).zip(tmax.chunks(PACKET)).zip(out.chunks_mut(PACKET)) {
+            let (mut p, act) = RayPack::new(rays, tmax);
+            if !self.nodes.is_empty() {
+                self.traverse_packet::<true>(isa, 0, act, &mut p, tmin);
+            }
+            for (r, o) in out.iter_mut().enumerate().take(rays.len().min(tmax.len())) {
+                *o = p.found >> r & 1 != 0;
+            }
+        }
+    }
+
+    /// [`Bvh::traverse_packet_body`] compiled for `isa`.
+    #[inline]
+    fn traverse_packet<const ANY: bool>(&self, isa: Isa, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
+        #[cfg(target_arch = "x86_64")]
+        if isa == Isa::Avx2 && Isa::detect() == Isa::Avx2 {
+            // SAFETY: as in `traverse`: `Isa::detect` confirmed every feature
+            // `traverse_packet_avx2` is compiled for on this CPU.
+            return unsafe { self.traverse_packet_avx2::<ANY>(start, act, p, tmin) };
+        }
+        let _ = isa;
+        self.traverse_packet_body::<ANY>(start, act, p, tmin)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn traverse_packet_avx2<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
+        self.traverse_packet_body::<ANY>(start, act, p, tmin)
+    }
+
+    #[inline(never)]
+    fn traverse_packet_deep<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
+        self.traverse_packet_body::<ANY>(start, act, p, tmin)
+    }
+
+    /// Packet traversal of the subtree under child code `start` for the lanes in `act`: each
+    /// lane runs [`Bvh::traverse_body`]'s box and triangle tests (same arithmetic), a node is
+    /// visited while any active lane enters it, and children are visited in order of the
+    /// nearest lane's entry. With `ANY`, lanes stop at their first hit.
+    #[inline(always)]
+    fn traverse_packet_body<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
+        let mut stack_c = [0u32; STACK];
+        let mut stack_m = [0u32; STACK];
+        let mut stack_t = [0u32; STACK];
+        let mut sp = 0usize;
+        let (mut cur, mut act) = (start, act);
+        loop {
+            if ANY {
+                act &= !p.found;
+            }
+            if act != 0 && cur & LEAF == 0 {
+                let n = &self.nodes[cur as usize];
+                // Per child: lanes entering it and the smallest entry distance (as bits:
+                // entry distances are ≥ 0, so their bit patterns order as the floats do).
+                let mut cm = [0u32; 4];
+                let mut ct = [u32::MAX; 4];
+                for c in 0..4 {
+                    let (lx, ly, lz) = (n.b[0][c], n.b[1][c], n.b[2][c]);
+                    let (hx, hy, hz) = (n.b[3][c], n.b[4][c], n.b[5][c]);
+                    let mut hit = [false; PACKET];
+                    let mut tb = [u32::MAX; PACKET];
+                    for r in 0..PACKET {
+                        let a0x = (lx - p.o[0][r]) * p.inv[0][r];
+                        let a1x = (hx - p.o[0][r]) * p.inv[0][r];
+                        let a0y = (ly - p.o[1][r]) * p.inv[1][r];
+                        let a1y = (hy - p.o[1][r]) * p.inv[1][r];
+                        let a0z = (lz - p.o[2][r]) * p.inv[2][r];
+                        let a1z = (hz - p.o[2][r]) * p.inv[2][r];
+                        let (t0x, t1x) = if p.neg[0][r] { (a1x, a0x) } else { (a0x, a1x) };
+                        let (t0y, t1y) = if p.neg[1][r] { (a1y, a0y) } else { (a0y, a1y) };
+                        let (t0z, t1z) = if p.neg[2][r] { (a1z, a0z) } else { (a0z, a1z) };
+                        let mut t0 = 0.0f32;
+                        t0 = if t0x > t0 { t0x } else { t0 };
+                        t0 = if t0y > t0 { t0y } else { t0 };
+                        t0 = if t0z > t0 { t0z } else { t0 };
+                        let mut t1 = p.tmax[r];
+                        t1 = if t1x < t1 { t1x } else { t1 };
+                        t1 = if t1y < t1 { t1y } else { t1 };
+                        t1 = if t1z < t1 { t1z } else { t1 };
+                        let h = (t0 <= t1 * 1.000_000_2) & (act >> r & 1 != 0);
+                        hit[r] = h;
+                        tb[r] = if h { t0.to_bits() } else { u32::MAX };
+                    }
+                    let mut m = 0u32;
+                    for r in 0..PACKET {
+                        m |= (hit[r] as u32) << r;
+                    }
+                    cm[c] = m;
+                    ct[c] = tb.iter().fold(u32::MAX, |a, &b| a.min(b));
+                }
+                // Hit children, nearest first (any-hit: in slot order).
+                let mut order = [0usize; 4];
+                let mut k = 0;
+                for c in 0..4 {
+                    if cm[c] != 0 {
+                        let mut i = k;
+                        while !ANY && i > 0 && ct[order[i - 1]] > ct[c] {
+                            order[i] = order[i - 1];
+                            i -= 1;
+                        }
+                        order[i] = c;
+                        k += 1;
+                    }
+                }
+                if k > 0 {
+                    for j in (1..k).rev() {
+                        let c = order[j];
+                        if sp < STACK {
+                            stack_c[sp] = n.child[c];
+                            stack_m[sp] = cm[c];
+                            stack_t[sp] = ct[c];
+                            sp += 1;
+                        } else {
+                            self.traverse_packet_deep::<ANY>(n.child[c], cm[c], p, tmin);
+                        }
+                    }
+                    cur = n.child[order[0]];
+                    act = cm[order[0]];
+                    continue;
+                }
+            } else if act != 0 && cur != EMPTY {
+                let first = (cur & LEAF_INDEX_MASK) as usize;
+                let count = ((cur & !LEAF) >> LEAF_COUNT_SHIFT) as usize + 1;
+                for (pi, pk) in self.packets[first..first + count].iter().enumerate() {
+                    for l in 0..4 {
+                        if pk.prim[l] == u32::MAX {
+                            break;
+                        }
+                        let m = intersect_tri_lanes(pk, l, p, tmin, act);
+                        if m != 0 {
+                            for r in 0..PACKET {
+                                if m >> r & 1 != 0 {
+                                    p.pk[r] = (first + pi) as u32;
+                                    p.lane[r] = l as u32;
+                                }
+                            }
+                            p.found |= m;
+                        }
+                    }
+                }
+            }
+            // Pop the next entry that can still hold a closer hit for one of its lanes.
+            loop {
+                if sp == 0 {
+                    return;
+                }
+                sp -= 1;
+                let m = stack_m[sp];
+                if ANY {
+                    if m & !p.found != 0 {
+                        cur = stack_c[sp];
+                        act = m;
+                        break;
+                    }
+                    continue;
+                }
+                // Farthest limit among the entry's lanes (limits are > tmin ≥ 0 for lanes
+                // that can hit; a negative one compares as the largest bits, so never culls).
+                let mut far = 0u32;
+                for r in 0..PACKET {
+                    let b = if m >> r & 1 != 0 { p.tmax[r].to_bits() } else { 0 };
+                    far = far.max(b);
+                }
+                if stack_t[sp] <= far {
+                    cur = stack_c[sp];
+                    act = m;
+                    break;
+                }
+            }
+        }
+    }
+}
+
+/// Lane `l` of packet `pk` against every ray of `p` active in `act`, with the operations of
+/// [`intersect_tri`] in the same order; lanes hit closer than their current limit get the hit
+/// recorded (distance, barycentrics) and are returned as a mask.
+#[inline(always)]
+fn intersect_tri_lanes(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
+    let (e1x, e1y, e1z) = (pk.e1[0][l], pk.e1[1][l], pk.e1[2][l]);
+    let (e2x, e2y, e2z) = (pk.e2[0][l], pk.e2[1][l], pk.e2[2][l]);
+    let (p0x, p0y, p0z) = (pk.p0[0][l], pk.p0[1][l], pk.p0[2][l]);
+    let mut ok = [false; PACKET];
+    for r in 0..PACKET {
+        let (dx, dy, dz) = (p.d[0][r], p.d[1][r], p.d[2][r]);
+        let px = dy * e2z - dz * e2y;
+        let py = dz * e2x - dx * e2z;
+        let pz = dx * e2y - dy * e2x;
+        let det = e1x * px + e1y * py + e1z * pz;
+        let inv = 1.0 / det;
+        let sx = p.o[0][r] - p0x;
+        let sy = p.o[1][r] - p0y;
+        let sz = p.o[2][r] - p0z;
+        let u = (sx * px + sy * py + sz * pz) * inv;
+        let qx = sy * e1z - sz * e1y;
+        let qy = sz * e1x - sx * e1z;
+        let qz = sx * e1y - sy * e1x;
+        let v = (dx * qx + dy * qy + dz * qz) * inv;
+        let tt = (e2x * qx + e2y * qy + e2z * qz) * inv;
+        let h = (det.abs() >= 1e-20)
+            & (0.0..=1.0).contains(&u)
+            & (v >= 0.0)
+            & (u + v <= 1.0)
+            & (tt > tmin)
+            & (tt < p.tmax[r])
+            & (act >> r & 1 != 0);
+        ok[r] = h;
+        p.tmax[r] = if h { tt } else { p.tmax[r] };
+        p.b1[r] = if h { u } else { p.b1[r] };
+        p.b2[r] = if h { v } else { p.b2[r] };
+    }
+    let mut m = 0u32;
+    for r in 0..PACKET {
+        m |= (ok[r] as u32) << r;
+    }
+    m
+}
+
+/// Instruction set a traversal is compiled for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Isa {
+    /// The build target's baseline (SSE2 on x86-64).
+    Base,
+    /// x86-64 with AVX2, FMA, BMI1/2, LZCNT and POPCNT, detected at run time.
+    Avx2,
+}
+
+impl Isa {
+    /// The best instruction set this CPU supports (detected once, then cached).
+    #[inline]
+    pub fn detect() -> Isa {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::sync::atomic::{AtomicU8, Ordering};
+            // 0 = not yet detected, 1 = Base, 2 = Avx2.
+            static DETECTED: AtomicU8 = AtomicU8::new(0);
+            match DETECTED.load(Ordering::Relaxed) {
+                1 => Isa::Base,
+                2 => Isa::Avx2,
+                _ => {
+                    let avx2 = is_x86_feature_detected!("avx2")
+                        && is_x86_feature_detected!("fma")
+                        && is_x86_feature_detected!("bmi1")
+                        && is_x86_feature_detected!("bmi2")
+                        && is_x86_feature_detected!("lzcnt")
+                        && is_x86_feature_detected!("popcnt");
+                    DETECTED.store(if avx2 { 2 } else { 1 }, Ordering::Relaxed);
+                    if avx2 {
+                        Isa::Avx2
+                    } else {
+                        Isa::Base
+                    }
+                }
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        Isa::Base
+    }
+
+    /// Every instruction set usable on this CPU (the baseline first).
+    pub fn available() -> Vec<Isa> {
+        let mut v = vec![Isa::Base];
+        if Isa::detect() == Isa::Avx2 {
+            v.push(Isa::Avx2);
+        }
+        v
     }
 }
 
@@ -660,8 +1132,93 @@ mod tests {
     }
 
     /// Checks `n_rays` random rays (origins in the box, some on the surfaces, some with zero
-    /// direction components, random `(tmin, tmax)` windows) against the brute-force answer.
+    /// direction components, random `(tmin, tmax)` windows) against the brute-force answer,
+    /// with the traversal of every instruction set this CPU has; returns the hits per set.
     fn check(tris: &[Tri], n_rays: usize, seed: u64) -> usize {
+        let isas = Isa::available();
+        if cfg!(target_arch = "x86_64") && std::is_x86_feature_detected!("avx2") {
+            assert!(isas.contains(&Isa::Avx2), "AVX2 CPU but the AVX2 traversal is not used");
+        }
+        let hits: Vec<usize> = isas
+            .iter()
+            .map(|&isa| {
+                check_packets(isa, tris, n_rays, seed + 1);
+                check_isa(isa, tris, n_rays, seed)
+            })
+            .collect();
+        assert!(hits.iter().all(|&h| h == hits[0]), "{hits:?}");
+        hits[0]
+    }
+
+    /// Compares a hit with the brute-force answer `want` (ties at the same distance allowed).
+    fn same_hit(tris: &[Tri], perm: &[u32], ray: &Ray, tmin: f32, tmax: f32, want: (f32, f32, f32, usize), h: &Hit) {
+        let (t, b1, b2, i) = want;
+        let j = perm[h.prim as usize] as usize;
+        assert_eq!(t.to_bits(), h.t.to_bits(), "t {t} vs {}", h.t);
+        if j == i {
+            assert_eq!((b1, b2), (h.b1, h.b2));
+        } else {
+            let other = intersect_tri(&tris[j], ray, tmin, tmax).map(|x| x.0);
+            assert_eq!(other, Some(t), "prim {j} instead of {i}");
+        }
+        let tj = &tris[j];
+        assert_eq!(h.p, tj.p0 + tj.e1 * h.b1 + tj.e2 * h.b2);
+    }
+
+    /// Packet queries against brute force: bundles of nearly parallel rays from one origin
+    /// (like the samples of a pixel; some lanes with zero direction components), random rays,
+    /// partial packets, random far limits.
+    fn check_packets(isa: Isa, tris: &[Tri], n_rays: usize, seed: u64) {
+        let (bvh, perm) = Bvh::build(tris);
+        let mut rng = Rng::new(seed);
+        let mut k = 0;
+        while k < n_rays {
+            let len = [PACKET, 1, 5, PACKET + 3, 2 * PACKET][k % 5];
+            let bundle = k % 2 == 0;
+            let o0 = V3::new(rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0));
+            let d0 = V3::new(rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)) - o0 * 0.1;
+            let tmin = if k % 3 == 0 { 1e-4 } else { 0.0 };
+            let mut rays = Vec::new();
+            let mut tmax = Vec::new();
+            for j in 0..len {
+                let (o, mut d) = if bundle {
+                    let jit = V3::new(rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0));
+                    (o0, d0 + jit * 0.01)
+                } else {
+                    let o = V3::new(rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0));
+                    (
+                        o,
+                        V3::new(rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0)) - o * 0.1,
+                    )
+                };
+                if j % 7 == 3 {
+                    d.x = 0.0;
+                }
+                rays.push(Ray::new(o, d.normalize()));
+                tmax.push(if j % 3 == 1 {
+                    rng.uniform(0.5, 12.0)
+                } else {
+                    f32::INFINITY
+                });
+            }
+            let mut got = vec![None; len];
+            bvh.intersect_packet_isa(isa, &rays, tmin, &tmax, &mut got);
+            let mut occ = vec![false; len];
+            bvh.occluded_packet_isa(isa, &rays, tmin, &tmax, &mut occ);
+            for j in 0..len {
+                let want = brute(tris, &rays[j], tmin, tmax[j]);
+                match (want, &got[j]) {
+                    (None, None) => {}
+                    (Some(w), Some(h)) => same_hit(tris, &perm, &rays[j], tmin, tmax[j], w, h),
+                    (w, g) => panic!("packet {k} lane {j}: brute {w:?} vs bvh {g:?}"),
+                }
+                assert_eq!(want.is_some(), occ[j], "packet {k} lane {j}");
+            }
+            k += len;
+        }
+    }
+
+    fn check_isa(isa: Isa, tris: &[Tri], n_rays: usize, seed: u64) -> usize {
         let (bvh, perm) = Bvh::build(tris);
         let sorted: Vec<Tri> = perm.iter().map(|&i| tris[i as usize]).collect();
         let mut rng = Rng::new(seed);
@@ -691,7 +1248,7 @@ mod tests {
                 _ => (0.0, f32::INFINITY),
             };
             let want = brute(tris, &ray, tmin, tmax);
-            let got = bvh.intersect(&ray, tmin, tmax);
+            let got = bvh.intersect_isa(isa, &ray, tmin, tmax);
             match (want, got) {
                 (None, None) => {}
                 (Some((t, b1, b2, i)), Some(h)) => {
@@ -712,7 +1269,7 @@ mod tests {
                 }
                 (w, g) => panic!("ray {k}: brute {w:?} vs bvh {g:?}"),
             }
-            assert_eq!(want.is_some(), bvh.occluded(&ray, tmin, tmax), "ray {k}");
+            assert_eq!(want.is_some(), bvh.occluded_isa(isa, &ray, tmin, tmax), "ray {k}");
         }
         hits
     }

@@ -284,7 +284,29 @@ impl Geometry {
 
     /// Closest surface along `ray` in `(tmin, tmax)`.
     pub fn intersect(&self, ray: &Ray, tmin: f32, tmax: f32) -> Option<SurfaceHit> {
-        let Hit { t, b1, b2, prim, p } = self.bvh.intersect(ray, tmin, tmax)?;
+        self.bvh.intersect(ray, tmin, tmax).map(|h| self.surface(h))
+    }
+
+    /// [`Geometry::intersect`] for each of `rays` (far limits `tmax`), into `out`, sharing BVH
+    /// traversals between the rays (see [`Bvh::intersect_packet`]): for coherent rays such as
+    /// the samples of one pixel. Pairs beyond the shortest slice are not traced.
+    pub fn intersect_packet(&self, rays: &[Ray], tmin: f32, tmax: &[f32], out: &mut [Option<SurfaceHit>]) {
+        let mut hits = [None; crate::bvh::PACKET];
+        for ((rays, tmax), out) in rays
+            .chunks(crate::bvh::PACKET)
+            .zip(tmax.chunks(crate::bvh::PACKET))
+            .zip(out.chunks_mut(crate::bvh::PACKET))
+        {
+            self.bvh.intersect_packet(rays, tmin, tmax, &mut hits);
+            for (o, h) in out.iter_mut().zip(&hits).take(rays.len().min(tmax.len())) {
+                *o = h.map(|h| self.surface(h));
+            }
+        }
+    }
+
+    /// The shading data at a BVH hit.
+    fn surface(&self, hit: Hit) -> SurfaceHit {
+        let Hit { t, b1, b2, prim, p } = hit;
         let a = &self.attrs[prim as usize];
         let b0 = 1.0 - b1 - b2;
         let mut ns = (a.n[0] * b0 + a.n[1] * b1 + a.n[2] * b2).normalize();
@@ -295,14 +317,14 @@ impl Geometry {
             a.uv[0][0] * b0 + a.uv[1][0] * b1 + a.uv[2][0] * b2,
             a.uv[0][1] * b0 + a.uv[1][1] * b1 + a.uv[2][1] * b2,
         ];
-        Some(SurfaceHit {
+        SurfaceHit {
             p,
             ng: a.ng,
             ns,
             uv,
             prim,
             t,
-        })
+        }
     }
 
     pub fn occluded(&self, ray: &Ray, tmin: f32, tmax: f32) -> bool {

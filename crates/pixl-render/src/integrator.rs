@@ -18,7 +18,7 @@
 //! (per channel) — for light sampling the lobe evaluations, for the continuing path the lobe
 //! weights of the first sampled direction — and goes to `*Dir` when it comes straight from a
 //! light, to `*Ind` otherwise.
-use crate::bvh::Ray;
+use crate::bvh::{Ray, PACKET};
 use crate::camera::CameraRays;
 use crate::error::{RenderError, Result};
 use crate::film::{Film, PixelSum};
@@ -123,15 +123,29 @@ impl Renderer {
         Film::from_sums(w, h, self.opts.spp, &sums)
     }
 
-    /// The sums of all samples of pixel `(x, y)`.
+    /// The sums of all samples of pixel `(x, y)`. The camera rays of up to [`PACKET`]
+    /// samples are traced together (one shared BVH traversal); each sample still draws from
+    /// its own stream in the same order, so the result equals tracing them one by one.
     pub fn render_pixel(&self, x: usize, y: usize) -> PixelSum {
         let mut acc = PixelSum::default();
         let pixel = (y * self.width as usize + x) as u64;
-        for s in 0..self.opts.spp {
-            let mut rng = Rng::for_stream(self.opts.seed, &[pixel, s as u64]);
-            let ray = self.camera.ray(x as f32 + rng.f32(), y as f32 + rng.f32());
-            let sample = self.trace(&ray, &mut rng);
-            acc.add(&sample);
+        let spp = self.opts.spp as usize;
+        let far = [f32::INFINITY; PACKET];
+        let mut first = [None; PACKET];
+        for s0 in (0..spp).step_by(PACKET) {
+            let n = PACKET.min(spp - s0);
+            let mut rngs: [Rng; PACKET] =
+                std::array::from_fn(|j| Rng::for_stream(self.opts.seed, &[pixel, (s0 + j) as u64]));
+            let rays: [Ray; PACKET] = std::array::from_fn(|j| {
+                let rng = &mut rngs[j];
+                let (u, v) = (rng.f32(), rng.f32());
+                self.camera.ray(x as f32 + u, y as f32 + v)
+            });
+            self.geom.intersect_packet(&rays[..n], 0.0, &far[..n], &mut first[..n]);
+            for j in 0..n {
+                let sample = self.trace(&rays[j], first[j], &mut rngs[j]);
+                acc.add(&sample);
+            }
         }
         acc
     }
@@ -142,12 +156,12 @@ impl Renderer {
         Ray::new(hit.p + n * eps, wi)
     }
 
-    /// One camera path: its contribution to every pass.
-    fn trace(&self, camera_ray: &Ray, rng: &mut Rng) -> PixelSum {
+    /// One camera path, given the camera ray's closest hit `first`: its contribution to
+    /// every pass.
+    fn trace(&self, camera_ray: &Ray, first: Option<SurfaceHit>, rng: &mut Rng) -> PixelSum {
         let mut s = PixelSum::default();
         let geom = &self.geom;
         let lights = &self.lights;
-        let first = geom.intersect(camera_ray, 0.0, f32::INFINITY);
         let t_first = first.map(|h| h.t).unwrap_or(f32::INFINITY);
         lights.area_hits(camera_ray, t_first, |l, _, _| {
             s.emit += l;
