@@ -15,7 +15,7 @@ use crate::convnext::ConvNextEncoder;
 use crate::dpt::DptHead;
 use crate::fusion::Fusion;
 use crate::modulation::Modulation;
-use crate::trunk::Trunk;
+use crate::trunk::{Trunk, TrunkGrid};
 use crate::vit::VitEncoder;
 use candle_core::{DType, Result, Tensor};
 use candle_nn::VarBuilder;
@@ -105,6 +105,27 @@ impl PixlRelight {
 
     /// `F` at the padded size `(B, C', 16⌈H/16⌉, 16⌈W/16⌉)`.
     fn padded_features(&self, src: &Tensor, ct: &Tensor) -> Result<Tensor> {
+        let p = self.prepare(src, ct)?;
+        let src_tokens = self.src_encoder.forward(&p.src)?;
+        let cond_tokens = self.cond_encoder.forward(&p.ct)?;
+        let tokens = self.fuse.forward(&src_tokens, &cond_tokens)?;
+        let readouts = self.trunk.forward(&tokens, p.gh, p.gw)?;
+        self.head.forward(&readouts, p.ph, p.pw)
+    }
+
+    // ---- Segment API (gradient checkpointing in pixl-train) ----
+    //
+    // `forward_unclipped(src, ct)` is exactly, in this order of operations:
+    //   p = prepare(src, ct)
+    //   x = src_encoder().embed(&p.src); x = src_encoder().block(j, &x) for every j
+    //   h = fuse_tokens(&x, &cond_tokens(&p))
+    //   h = trunk().block(i, &h, &p.grid) for every i, keeping the outputs of trunk().readouts()
+    //   tail_unclipped(&those four outputs, src, &p)
+    // so a caller that cuts the pass at these points (and recomputes a segment from its stored
+    // input) gets bitwise the same values as the plain forward. Tensor names are unchanged.
+
+    /// Checks shapes, pads to multiples of 16 (edge replication) and casts to the weights' dtype.
+    pub fn prepare(&self, src: &Tensor, ct: &Tensor) -> Result<Prepared> {
         let (b, c, h, w) = src.dims4()?;
         let (cb, cc, ch, cw) = ct.dims4()?;
         if c != 3 || cc != 9 || (b, h, w) != (cb, ch, cw) {
@@ -119,12 +140,67 @@ impl PixlRelight {
         }
         let (ph, pw) = (h.div_ceil(PATCH) * PATCH, w.div_ceil(PATCH) * PATCH);
         let (gh, gw) = (ph / PATCH, pw / PATCH);
-        let src_p = pad_replicate(&src.to_dtype(self.dtype)?, ph, pw)?;
-        let ct_p = pad_replicate(&ct.to_dtype(self.dtype)?, ph, pw)?;
-        let src_tokens = self.src_encoder.forward(&src_p)?;
-        let cond_tokens = self.cond_encoder.forward(&ct_p)?;
-        let tokens = self.fuse.forward(&src_tokens, &cond_tokens)?;
-        let readouts = self.trunk.forward(&tokens, gh, gw)?;
-        self.head.forward(&readouts, ph, pw)
+        Ok(Prepared {
+            src: pad_replicate(&src.to_dtype(self.dtype)?, ph, pw)?,
+            ct: pad_replicate(&ct.to_dtype(self.dtype)?, ph, pw)?,
+            h,
+            w,
+            ph,
+            pw,
+            gh,
+            gw,
+            grid: self.trunk.grid(gh, gw, src.device())?,
+        })
     }
+
+    /// The source encoder (its `embed`, `block`, `depth` are segment points).
+    pub fn src_encoder(&self) -> &VitEncoder {
+        &self.src_encoder
+    }
+
+    /// The trunk (its `block`, `depth`, `readouts` are segment points).
+    pub fn trunk(&self) -> &Trunk {
+        &self.trunk
+    }
+
+    /// The intrinsics encoder's tokens `(B, N, d)` of the padded C_T.
+    pub fn cond_tokens(&self, p: &Prepared) -> Result<Tensor> {
+        self.cond_encoder.forward(&p.ct)
+    }
+
+    /// Last source-encoder block output and conditioning tokens → trunk block 0's input
+    /// `(B, R + N, d)` (the encoder's final norm, the fusion MLP, the registers).
+    pub fn fuse_tokens(&self, src_blocks_out: &Tensor, cond_tokens: &Tensor) -> Result<Tensor> {
+        let src_tokens = self.src_encoder.finish(src_blocks_out)?;
+        let tokens = self.fuse.forward(&src_tokens, cond_tokens)?;
+        self.trunk.with_registers(&tokens)
+    }
+
+    /// The outputs of the four readout blocks (in `trunk().readouts()` order) → the unclipped
+    /// prediction `(1 + g) ⊙ I_S + b`, f32 `(B, 3, H, W)`, as [`Self::forward_unclipped`].
+    pub fn tail_unclipped(&self, readout_blocks: &[Tensor], src: &Tensor, p: &Prepared) -> Result<Tensor> {
+        let readouts = readout_blocks
+            .iter()
+            .map(|xs| self.trunk.readout(xs, &p.grid))
+            .collect::<Result<Vec<_>>>()?;
+        let (g, bias) = self.modulation.gain_bias(&self.head.forward(&readouts, p.ph, p.pw)?)?;
+        let crop = |t: Tensor| -> Result<Tensor> { t.narrow(2, 0, p.h)?.narrow(3, 0, p.w) };
+        Modulation::affine(&src.to_dtype(DType::F32)?, &crop(g)?, &crop(bias)?)
+    }
+}
+
+/// One forward pass's padded inputs and grid (see [`PixlRelight::prepare`]).
+#[derive(Clone, Debug)]
+pub struct Prepared {
+    /// `(B, 3, ph, pw)` source in the network's dtype.
+    pub src: Tensor,
+    /// `(B, 9, ph, pw)` C_T in the network's dtype.
+    pub ct: Tensor,
+    pub h: usize,
+    pub w: usize,
+    pub ph: usize,
+    pub pw: usize,
+    pub gh: usize,
+    pub gw: usize,
+    pub grid: TrunkGrid,
 }

@@ -14,7 +14,7 @@
 //!   [`Config::validate`] checks it.
 use crate::config::Config;
 use crate::vit::{tokens_to_grid, Block, PatchRope};
-use candle_core::{Module, Result, Tensor};
+use candle_core::{Device, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 use pixl_nn::{LayerNorm, Rope2d};
 
@@ -49,27 +49,85 @@ impl Trunk {
 
     /// Fused tokens `(B, gh·gw, d)` → the four readout maps `(B, d, gh, gw)`.
     pub fn forward(&self, tokens: &Tensor, gh: usize, gw: usize) -> Result<Vec<Tensor>> {
-        let (b, n, d) = tokens.dims3()?;
+        let (_b, n, _d) = tokens.dims3()?;
         if n != gh * gw {
             candle_core::bail!("trunk: {n} tokens do not form a {gh}×{gw} grid");
         }
-        let r = self.registers.dim(1)?;
-        let rope = Rope2d::new(self.head_dim, gh, gw, self.rope_base, tokens.device())?;
-        let rope = PatchRope { rope: &rope, prefix: r };
-        let registers = self.registers.to_dtype(tokens.dtype())?.broadcast_as((b, r, d))?;
-        let mut xs = if r == 0 {
-            tokens.clone()
-        } else {
-            Tensor::cat(&[&registers, tokens], 1)?
-        };
+        let grid = self.grid(gh, gw, tokens.device())?;
+        let mut xs = self.with_registers(tokens)?;
         let mut outs = Vec::with_capacity(4);
-        for (i, block) in self.blocks.iter().enumerate() {
-            xs = block.forward(&xs, Some(&rope))?;
+        for i in 0..self.blocks.len() {
+            xs = self.block(i, &xs, &grid)?;
             if self.readouts.contains(&i) {
-                let patches = self.norm.forward(&xs.narrow(1, r, n)?.contiguous()?)?;
-                outs.push(tokens_to_grid(&patches, gh, gw)?);
+                outs.push(self.readout(&xs, &grid)?);
             }
         }
         Ok(outs)
     }
+
+    // Segment API (gradient checkpointing). `forward` is exactly `with_registers`, then
+    // `block(i)` for every `i`, with `readout` applied to the outputs of the `readouts` blocks;
+    // a caller that runs the same calls on the same values gets bitwise the same results.
+
+    /// Number of blocks.
+    pub fn depth(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// The (zero-based, increasing) blocks whose outputs are read out.
+    pub fn readouts(&self) -> [usize; 4] {
+        self.readouts
+    }
+
+    /// The RoPE tables and token layout of a `(gh, gw)` grid (tokens `(B, gh·gw, d)`).
+    pub fn grid(&self, gh: usize, gw: usize, device: &Device) -> Result<TrunkGrid> {
+        let rope = Rope2d::new(self.head_dim, gh, gw, self.rope_base, device)?;
+        Ok(TrunkGrid {
+            rope,
+            prefix: self.registers.dim(1)?,
+            gh,
+            gw,
+        })
+    }
+
+    /// The registers prepended to `tokens`: `(B, R + N, d)`, the input of block 0.
+    pub fn with_registers(&self, tokens: &Tensor) -> Result<Tensor> {
+        let (b, _n, d) = tokens.dims3()?;
+        let r = self.registers.dim(1)?;
+        if r == 0 {
+            return Ok(tokens.clone());
+        }
+        let registers = self.registers.to_dtype(tokens.dtype())?.broadcast_as((b, r, d))?;
+        Tensor::cat(&[&registers, tokens], 1)
+    }
+
+    /// Block `i` on `(B, R + N, d)`.
+    pub fn block(&self, i: usize, xs: &Tensor, grid: &TrunkGrid) -> Result<Tensor> {
+        let block = self
+            .blocks
+            .get(i)
+            .ok_or_else(|| candle_core::Error::Msg(format!("trunk: no block {i} (depth {})", self.blocks.len())))?;
+        let rope = PatchRope {
+            rope: &grid.rope,
+            prefix: grid.prefix,
+        };
+        block.forward(xs, Some(&rope))
+    }
+
+    /// A block output `(B, R + N, d)` (`N = gh·gw` of `grid`) → its readout map `(B, d, gh, gw)` (registers dropped,
+    /// shared final norm).
+    pub fn readout(&self, xs: &Tensor, grid: &TrunkGrid) -> Result<Tensor> {
+        let n = grid.gh * grid.gw;
+        let patches = self.norm.forward(&xs.narrow(1, grid.prefix, n)?.contiguous()?)?;
+        tokens_to_grid(&patches, grid.gh, grid.gw)
+    }
+}
+
+/// What the trunk's blocks need to know about one input grid (see [`Trunk::grid`]).
+#[derive(Clone, Debug)]
+pub struct TrunkGrid {
+    rope: Rope2d,
+    prefix: usize,
+    gh: usize,
+    gw: usize,
 }

@@ -147,15 +147,40 @@ impl VitEncoder {
 
     /// `(B, 3, H, W)` → `(B, (H/16)(W/16), d)`.
     pub fn forward(&self, src: &Tensor) -> Result<Tensor> {
+        let mut xs = self.embed(src)?;
+        for i in 0..self.blocks.len() {
+            xs = self.block(i, &xs)?;
+        }
+        self.finish(&xs)
+    }
+
+    // Segment API (gradient checkpointing): `forward` is exactly `embed`, `block(i)` for every
+    // `i`, then `finish`; the same calls on the same values give bitwise the same results.
+
+    /// Number of blocks.
+    pub fn depth(&self) -> usize {
+        self.blocks.len()
+    }
+
+    /// Patch embedding plus position embedding: `(B, 3, H, W)` → `(B, N, d)`, the input of block 0.
+    pub fn embed(&self, src: &Tensor) -> Result<Tensor> {
         let xs = self.patch_embed.forward(src)?; // (B, d, gh, gw)
         let (_b, _d, gh, gw) = xs.dims4()?;
-        let mut xs = xs
-            .flatten_from(2)?
+        xs.flatten_from(2)?
             .transpose(1, 2)?
-            .broadcast_add(&self.pos_embed_for(gh, gw)?)?;
-        for block in &self.blocks {
-            xs = block.forward(&xs, None)?;
-        }
+            .broadcast_add(&self.pos_embed_for(gh, gw)?)
+    }
+
+    /// Block `i` on `(B, N, d)`.
+    pub fn block(&self, i: usize, xs: &Tensor) -> Result<Tensor> {
+        let block = self.blocks.get(i).ok_or_else(|| {
+            candle_core::Error::Msg(format!("src_encoder: no block {i} (depth {})", self.blocks.len()))
+        })?;
+        block.forward(xs, None)
+    }
+
+    /// The final norm on the last block's output.
+    pub fn finish(&self, xs: &Tensor) -> Result<Tensor> {
         self.norm.forward(&xs.contiguous()?)
     }
 }

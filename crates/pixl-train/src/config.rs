@@ -14,6 +14,8 @@
 //! batch_size = 4
 //! accumulate = 1                 # micro-batches per step (effective batch = batch_size × accumulate)
 //! clip_norm = 1.0
+//! precision = "f32"              # f32 | bf16 (bf16 compute, f32 master weights; pixl_train::precision)
+//! checkpoint = false             # per-block gradient checkpointing (pixl_train::recompute)
 //! [optim.schedule]
 //! peak_lr = 5e-5
 //! [loss]
@@ -26,6 +28,7 @@
 use crate::data::{SamplerConfig, Split};
 use crate::error::{Result, TrainError};
 use crate::optim::{AdamWConfig, LrSchedule};
+use crate::precision::Precision;
 use std::path::{Path, PathBuf};
 
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -81,6 +84,11 @@ pub struct OptimSection {
     pub batch_size: usize,
     pub accumulate: usize,
     pub clip_norm: f64,
+    /// The dtype the network computes in ([`Precision`]); weights and optimiser state stay f32.
+    pub precision: Precision,
+    /// Recompute each encoder/trunk block in the backward pass instead of keeping its
+    /// activations ([`crate::recompute`]): less memory, about one more forward per step.
+    pub checkpoint: bool,
     pub schedule: LrSchedule,
     pub adamw: AdamWConfig,
 }
@@ -91,6 +99,8 @@ impl Default for OptimSection {
             batch_size: 4,
             accumulate: 1,
             clip_norm: 1.0,
+            precision: Precision::F32,
+            checkpoint: false,
             schedule: LrSchedule::default(),
             adamw: AdamWConfig::default(),
         }

@@ -7,12 +7,16 @@
 //! - [`loss`]: L1 + λ·VGG16 perceptual (feature L1).
 //! - [`config`]: the `train.toml` settings.
 //! - [`trainer`]: the loop (accumulation, C_T corruption, logs, sample grids, checkpoints).
+//! - [`precision`]: bf16 compute over f32 master weights.
+//! - [`recompute`]: the micro-batch loss/gradient, plain or with per-block gradient checkpointing.
 //! - [`state`]: the resumable checkpoint file (bit-exact resume on CPU).
 pub mod config;
 pub mod data;
 pub mod error;
 pub mod loss;
 pub mod optim;
+pub mod precision;
+pub mod recompute;
 pub mod state;
 pub mod synth;
 pub mod trainer;

@@ -7,14 +7,18 @@
 //! prediction | target), `train-state.safetensors` (full resumable state, [`crate::state`]) and
 //! `model.safetensors` (weights only, loadable by `pixl_model::load`).
 //!
-//! Precision: f32 everywhere. The paper's bf16 compute with f32 master weights (CUDA) and
-//! per-block gradient checkpointing are not implemented (see the crate README / report).
+//! Precision (`[optim] precision`): f32 by default; `bf16` computes each micro-batch with a bf16
+//! copy of the f32 master weights ([`crate::precision`]), gradients and AdamW stay f32.
+//! `[optim] checkpoint = true` recomputes every encoder/trunk block in the backward pass
+//! ([`crate::recompute`]); same loss, same gradients up to summation order.
 use crate::config::TrainConfig;
 use crate::data::sampler::{DiskLoader, Loader, Sample, Sampler};
 use crate::data::{self, SceneEntry};
 use crate::error::{Result, TrainError};
-use crate::loss::{loss, Perceptual};
+use crate::loss::Perceptual;
 use crate::optim::{clip_global_norm, AdamW, LrSchedule};
+use crate::precision::{compute_model, Precision};
+use crate::recompute;
 use crate::state::{self, Meta, State, MODEL_FILE, STATE_FILE};
 use candle_core::{Device, Tensor, Var};
 use candle_nn::VarMap;
@@ -214,6 +218,7 @@ impl Trainer {
         let accum = self.cfg.optim.accumulate;
         let lr = self.cfg.optim.schedule.lr(self.step);
         let mut grads: Vec<Option<Tensor>> = vec![None; self.opt.params.len()];
+        let vars: Vec<Var> = self.opt.params.iter().map(|p| p.var.clone()).collect();
         let (mut loss_sum, mut l1_sum, mut perc_sum, mut images) = (0.0f32, 0.0f32, None::<f32>, 0usize);
         for micro in 0..accum {
             let micro_step = self.step * accum as u64 + micro as u64;
@@ -224,23 +229,34 @@ impl Trainer {
                 let seeds = self.augment_seeds(micro_step, samples.len());
                 ct = pixl_intrinsics::augment::corrupt(&ct, &seeds, &pixl_intrinsics::augment::AugmentConfig::paper())?;
             }
-            let pred = self.model.forward_unclipped(&src, &ct)?;
-            let terms = loss(&pred, &tgt, self.perceptual.as_ref(), self.cfg.loss.perceptual_weight)?;
-            let total = (&terms.total / accum as f64)?;
-            loss_sum += total.to_scalar::<f32>()?;
-            l1_sum += terms.l1 / accum as f32;
-            if let Some(p) = terms.perceptual {
-                perc_sum = Some(perc_sum.unwrap_or(0.0) + p / accum as f32);
-            }
-            let store = total.backward()?;
-            for (acc, p) in grads.iter_mut().zip(&self.opt.params) {
-                if let Some(g) = store.get(p.var.as_tensor()) {
-                    let g = g.detach();
-                    *acc = Some(match acc.take() {
-                        None => g,
-                        Some(a) => (a + g)?.detach(),
-                    });
+            let compute;
+            let model = match self.cfg.optim.precision {
+                Precision::F32 => &self.model,
+                p => {
+                    compute = compute_model(&self.model_cfg, &self.opt.params, p.dtype(), &self.device)?;
+                    &compute
                 }
+            };
+            let step_fn = if self.cfg.optim.checkpoint {
+                recompute::checkpointed
+            } else {
+                recompute::plain
+            };
+            let r = step_fn(
+                model,
+                &src,
+                &ct,
+                &tgt,
+                self.perceptual.as_ref(),
+                self.cfg.loss.perceptual_weight,
+                accum as f64,
+                &vars,
+                &mut grads,
+            )?;
+            loss_sum += r.loss;
+            l1_sum += r.l1 / accum as f32;
+            if let Some(p) = r.perceptual {
+                perc_sum = Some(perc_sum.unwrap_or(0.0) + p / accum as f32);
             }
         }
         if !loss_sum.is_finite() {
