@@ -89,8 +89,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (t_render, c_render) = (t1.elapsed().as_secs_f64(), process_cpu_s() - c1);
     let comb = film.pass("Combined").ok_or("no Combined")?;
     let mean: f64 = comb.data.iter().map(|v| *v as f64).sum::<f64>() / comb.data.len() as f64;
+    // FNV-1a over the bits of every Combined value: equal checksums mean a bit-identical image.
+    let bits = comb.data.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, v| {
+        (h ^ v.to_bits() as u64).wrapping_mul(0x100_0000_01b3)
+    });
     println!(
-        "{} triangles, {} BVH nodes, {} leaf packets, {}x{} @ {} spp, {} threads: load+BVH {:.2} s (CPU {:.2} s), render {:.2} s (CPU {:.2} s) (mean Combined {:.4})",
+        "{} triangles, {} BVH nodes, {} leaf packets, {}x{} @ {} spp, {} threads: load+BVH {:.2} s (CPU {:.2} s), render {:.2} s (CPU {:.2} s) (mean Combined {:.4}, bits {:016x})",
         r.geom.tris.len(),
         r.geom.bvh.num_nodes(),
         r.geom.bvh.num_packets(),
@@ -102,7 +106,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         c_build,
         t_render,
         c_render,
-        mean
+        mean,
+        bits
     );
     if args.get(3).map(String::as_str) != Some("render-only") {
         ray_throughput(&r);

@@ -39,7 +39,7 @@
 //! transmission) so the film can split light into Cycles' passes.
 use crate::geometry::{MaterialData, SurfaceHit};
 use crate::math::{Frame, V3};
-use crate::sampling::{cosine_hemisphere, ggx_d, ggx_g1, ggx_g2, ggx_sample_vndf};
+use crate::sampling::{cosine_hemisphere, ggx_d, ggx_g1, ggx_lambda, ggx_sample_vndf};
 use std::f32::consts::FRAC_1_PI;
 
 pub mod ggx_albedo;
@@ -104,6 +104,13 @@ pub struct Bsdf {
     p_diff: f32,
     p_spec: f32,
     p_trans: f32,
+    /// Per-`wo` constants of the GGX lobes: Smith `Λ(wo)`, `p_spec · G1(wo)` and `4 wo.z`.
+    lambda_o: f32,
+    p_spec_g1_o: f32,
+    four_cos_o: f32,
+    /// Whether the metal / dielectric specular lobes have non-zero weight.
+    has_metal: bool,
+    has_spec: bool,
     /// The albedo-like colour weights that Cycles stores as DiffCol / GlossCol / TransCol.
     pub colors: [V3; 3],
 }
@@ -206,7 +213,13 @@ impl Bsdf {
             (V3::ZERO, base * w, V3::ZERO)
         };
         let eta = if entering { m.ior } else { 1.0 / m.ior };
-        let fr = fresnel_dielectric(cos_o, eta);
+        // Only the transmission closure uses the Fresnel of the interface (`trans_w · fr` is 0
+        // otherwise, so skipping it leaves every result bit-identical).
+        let fr = if trans_w > 0.0 {
+            fresnel_dielectric(cos_o, eta)
+        } else {
+            0.0
+        };
         let gloss_albedo = metal_albedo + spec_albedo;
         let w_d = kd.luminance();
         let w_s = gloss_albedo.luminance();
@@ -227,6 +240,11 @@ impl Bsdf {
             base * (trans_w * (1.0 - fr)),
         ];
         Bsdf {
+            lambda_o: ggx_lambda(wo_local, alpha),
+            p_spec_g1_o: p_spec * ggx_g1(wo_local, alpha),
+            four_cos_o: 4.0 * wo_local.z,
+            has_metal: !metal_w.is_zero(),
+            has_spec: !spec_w.is_zero(),
             frame,
             ng,
             wo_local,
@@ -277,10 +295,19 @@ impl Bsdf {
             let h = (wo + wi).normalize();
             let d = ggx_d(h, self.alpha);
             let c = wi.dot(h);
-            let f = self.metal_w * schlick(self.metal_f0, c) + self.spec_w * fresnel_dielectric(c, self.spec_eta);
-            let g2 = ggx_g2(wo, wi, self.alpha);
-            out.glossy = f * (d * g2 / (4.0 * wo.z));
-            out.pdf += self.p_spec * ggx_g1(wo, self.alpha) * d / (4.0 * wo.z);
+            // A lobe of zero weight adds exactly +0 (its Fresnel factor is finite), so it is skipped.
+            let f = match (self.has_metal, self.has_spec) {
+                (true, true) => {
+                    self.metal_w * schlick(self.metal_f0, c) + self.spec_w * fresnel_dielectric(c, self.spec_eta)
+                }
+                (true, false) => self.metal_w * schlick(self.metal_f0, c),
+                (false, true) => self.spec_w * fresnel_dielectric(c, self.spec_eta),
+                (false, false) => V3::ZERO,
+            };
+            // `ggx_g2(wo, wi, α)` with `Λ(wo)` from `new`.
+            let g2 = 1.0 / (1.0 + self.lambda_o + ggx_lambda(wi, self.alpha));
+            out.glossy = f * (d * g2 / self.four_cos_o);
+            out.pdf += self.p_spec_g1_o * d / self.four_cos_o;
         }
         out
     }

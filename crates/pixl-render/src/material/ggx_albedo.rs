@@ -187,8 +187,10 @@ impl GgxAlbedo<'_> {
         let z = ((eta - 1.0) / (eta + 1.0)).max(0.0).sqrt();
         let (z0, z1, t) = cell(z, NS);
         let n2 = NS * NS;
-        let a = lerp2(&self.s[z0 * n2..(z0 + 1) * n2], NS, rough, mu);
-        let b = lerp2(&self.s[z1 * n2..(z1 + 1) * n2], NS, rough, mu);
+        // The (r, μ) cell is shared by both `z` slices: locate it once.
+        let (cx, cy) = (cell(rough, NS), cell(mu, NS));
+        let a = lerp2_at(&self.s[z0 * n2..(z0 + 1) * n2], NS, cx, cy);
+        let b = lerp2_at(&self.s[z1 * n2..(z1 + 1) * n2], NS, cx, cy);
         a * (1.0 - t) + b * t
     }
 
@@ -199,6 +201,7 @@ impl GgxAlbedo<'_> {
 }
 
 /// The two nodes around `x ∈ [0, 1]` on an `n`-node grid and the weight of the upper one.
+#[inline]
 fn cell(x: f32, n: usize) -> (usize, usize, f32) {
     let f = if x.is_finite() { x.clamp(0.0, 1.0) } else { 0.0 } * (n - 1) as f32;
     let i0 = (f.floor() as usize).min(n - 2);
@@ -206,9 +209,14 @@ fn cell(x: f32, n: usize) -> (usize, usize, f32) {
 }
 
 /// Bilinear lookup in an `n × n` table stored row-major with `x` (roughness) fastest.
+#[inline]
 fn lerp2(t: &[f32], n: usize, x: f32, y: f32) -> f32 {
-    let (x0, x1, tx) = cell(x, n);
-    let (y0, y1, ty) = cell(y, n);
+    lerp2_at(t, n, cell(x, n), cell(y, n))
+}
+
+/// [`lerp2`] with the cells of `x` and `y` given.
+#[inline]
+fn lerp2_at(t: &[f32], n: usize, (x0, x1, tx): (usize, usize, f32), (y0, y1, ty): (usize, usize, f32)) -> f32 {
     let row = |y: usize| t[y * n + x0] * (1.0 - tx) + t[y * n + x1] * tx;
     row(y0) * (1.0 - ty) + row(y1) * ty
 }
