@@ -545,7 +545,9 @@ impl Bvh {
                                 stack_c[sp] = c[j];
                                 stack_t[sp] = t[j];
                                 sp += 1;
-                            } else if self.traverse_deep::<ANY>(c[j], ray, tmin, tmax, best) {
+                            } else if self.traverse_deep::<ANY>(c[j], ray, tmin, tmax, best) && ANY {
+                                // (Closest-hit goes on: `traverse_deep` returning true only
+                                // means some hit exists, not that the rest can be skipped.)
                                 return true;
                             } else if let Some(h) = best {
                                 tmax = h.t;
