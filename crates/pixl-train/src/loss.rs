@@ -106,16 +106,17 @@ mod tests {
         let terms = loss(x.as_tensor(), &t, None, 0.0).unwrap();
         // Hand value: (1.0 + 0.45 + 0.3 + 0.5) / 4.
         assert!((terms.l1 - 2.25 / 4.0).abs() < 1e-6, "{}", terms.l1);
-        let g = terms
-            .total
-            .backward()
-            .unwrap()
-            .get(x.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap();
-        let g = g.to_vec1::<f32>().unwrap();
-        assert_eq!(g, vec![0.25, -0.25, -0.25, 0.25]);
+        let grad = |l: &Tensor| -> Vec<f32> {
+            let store = l.backward().unwrap();
+            store
+                .get(x.as_tensor())
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap()
+        };
+        assert_eq!(grad(&terms.total), vec![0.25, -0.25, -0.25, 0.25]);
         // The clipped loss would have frozen the two saturated pixels.
         let clipped = (x.as_tensor().clamp(0f32, 1f32).unwrap() - &t)
             .unwrap()
@@ -123,14 +124,7 @@ mod tests {
             .unwrap()
             .mean_all()
             .unwrap();
-        let gc = clipped
-            .backward()
-            .unwrap()
-            .get(x.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap();
-        let gc = gc.to_vec1::<f32>().unwrap();
+        let gc = grad(&clipped);
         assert_eq!(&gc[..2], &[0.0, 0.0]);
     }
 }

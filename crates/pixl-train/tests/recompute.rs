@@ -4,16 +4,16 @@
 //! replaced by random values: with it at zero every gradient upstream of it is exactly zero,
 //! which would make "the gradients agree" vacuous. Each test also checks that every parameter
 //! receives a non-zero gradient.
+mod common;
+
 use candle_core::{DType, Device, Tensor, Var};
-use pixl_core::Image;
-use pixl_intrinsics::ct::{write_ct, Ct};
+use common::fake_set;
 use pixl_model::{Config, PixlRelight};
 use pixl_train::optim::{AdamW, AdamWConfig, LrSchedule};
 use pixl_train::precision::{compute_model, Precision};
 use pixl_train::recompute::{checkpointed, plain, MicroReport};
 use pixl_train::{TrainConfig, Trainer};
 use std::collections::BTreeMap;
-use std::path::Path;
 
 struct Setup {
     cfg: Config,
@@ -171,29 +171,6 @@ fn bf16_compute_gradients_match_f32() {
         assert!(loss_rel < 1e-2, "bf16 loss {} vs f32 {}", r16[0].loss, r32[0].loss);
         assert!(global_rel < 5e-2, "global relative gradient error {global_rel}");
         assert!(worst_cos.0 > 0.99, "cosine {} for {}", worst_cos.0, worst_cos.1);
-    }
-}
-
-/// `scenes` scenes of `lights` `size`² images with C_T; lighting = a per-light gradient.
-fn fake_set(root: &Path, scenes: usize, lights: usize, size: usize) {
-    for sc in 0..scenes {
-        let dir = root.join(format!("scene{sc}"));
-        std::fs::create_dir_all(&dir).unwrap();
-        let albedo = Image::from_fn(size, size, 3, |x, y, c| {
-            0.2 + 0.6 * (((x / 4 + y / 4 + sc + c) % 3) as f32) / 2.0
-        });
-        for l in 0..lights {
-            let shading = Image::from_fn(size, size, 3, |x, y, _| {
-                let d = (x as f32 * (l as f32 - 1.0) + y as f32 * (l as f32 * 0.5)) / size as f32;
-                (0.5 + 0.4 * d).clamp(0.05, 1.0)
-            });
-            let ct = Ct::new(albedo.clone(), shading, Image::new(size, size, 3)).unwrap();
-            let img = ct
-                .recompose()
-                .map(|v| pixl_core::image::linear_to_srgb(v.clamp(0.0, 1.0)));
-            pixl_core::io::write_image(&dir.join(format!("l{l}.png")), &img).unwrap();
-            write_ct(&dir.join(format!("l{l}.intrinsics.exr")), &ct).unwrap();
-        }
     }
 }
 

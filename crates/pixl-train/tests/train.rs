@@ -1,7 +1,10 @@
 //! Optimiser, schedule, clipping, bit-exact resume and an end-to-end overfitting check.
+mod common;
+
 use candle_core::{Device, Tensor};
+use common::fake_set;
 use pixl_core::Image;
-use pixl_intrinsics::ct::{write_ct, Ct};
+use pixl_intrinsics::ct::Ct;
 use pixl_train::optim::{clip_global_norm, decays, LrSchedule};
 use pixl_train::{TrainConfig, Trainer};
 use std::path::Path;
@@ -61,30 +64,6 @@ fn weight_decay_exemptions() {
     assert!(!decays("trunk.registers", &[1, 4, 64]));
     assert!(!decays("src_encoder.pos_embed", &[1, 256, 64]));
     assert!(decays("cond_encoder.stem.0.weight", &[16, 9, 4, 4]));
-}
-
-/// `scenes` scenes of `lights` 32×32 images, each with a C_T; lighting = a per-light gradient.
-pub fn fake_set(root: &Path, scenes: usize, lights: usize, size: usize) {
-    for s in 0..scenes {
-        let dir = root.join(format!("scene{s}"));
-        std::fs::create_dir_all(&dir).unwrap();
-        let albedo = Image::from_fn(size, size, 3, |x, y, c| {
-            0.2 + 0.6 * (((x / 4 + y / 4 + s + c) % 3) as f32) / 2.0
-        });
-        for l in 0..lights {
-            let shading = Image::from_fn(size, size, 3, |x, y, _| {
-                let d = (x as f32 * (l as f32 - 1.0) + y as f32 * (l as f32 * 0.5)) / size as f32;
-                (0.5 + 0.4 * d).clamp(0.05, 1.0)
-            });
-            let residual = Image::new(size, size, 3);
-            let ct = Ct::new(albedo.clone(), shading.clone(), residual).unwrap();
-            let img = ct
-                .recompose()
-                .map(|v| pixl_core::image::linear_to_srgb(v.clamp(0.0, 1.0)));
-            pixl_core::io::write_image(&dir.join(format!("l{l}.png")), &img).unwrap();
-            write_ct(&dir.join(format!("l{l}.intrinsics.exr")), &ct).unwrap();
-        }
-    }
 }
 
 fn small_config(root: &Path, out: &Path) -> TrainConfig {
@@ -157,24 +136,17 @@ fn tiny_overfits_a_single_pair() {
     use std::collections::BTreeMap;
     let dev = Device::Cpu;
     let size = 32;
-    let albedo = Image::from_fn(size, size, 3, |x, y, c| {
-        0.2 + 0.6 * (((x / 4 + y / 4 + c) % 3) as f32) / 2.0
-    });
-    // Shading falls from 0.5 to 0.1 left to right in the source, rises 0.5 → 0.7 downwards in the target.
-    let shade = |l: usize| {
-        Image::from_fn(size, size, 3, |x, y, _| {
-            let d = (x as f32 * (l as f32 - 1.0) + y as f32 * (l as f32 * 0.5)) / size as f32;
-            (0.5 + 0.4 * d).clamp(0.05, 1.0)
-        })
+    // Source: light 0 (shading falls 0.5 → 0.1 left to right); target: light 1 (0.5 → 0.7 downwards).
+    let ct_of = |light| {
+        Ct::new(
+            common::albedo(size, 0),
+            common::shading(size, light),
+            Image::new(size, size, 3),
+        )
     };
-    let srgb = |ct: &Ct| {
-        ct.recompose()
-            .map(|v| pixl_core::image::linear_to_srgb(v.clamp(0.0, 1.0)))
-    };
-    let src_ct = Ct::new(albedo.clone(), shade(0), Image::new(size, size, 3)).unwrap();
-    let tgt_ct = Ct::new(albedo, shade(1), Image::new(size, size, 3)).unwrap();
+    let (src_ct, tgt_ct) = (ct_of(0).unwrap(), ct_of(1).unwrap());
     let t3 = |im: &Image| Tensor::from_vec(im.to_chw(), (1, 3, size, size), &dev).unwrap();
-    let (src, tgt) = (t3(&srgb(&src_ct)), t3(&srgb(&tgt_ct)));
+    let (src, tgt) = (t3(&common::srgb(&src_ct)), t3(&common::srgb(&tgt_ct)));
     let ct = Tensor::from_vec(tgt_ct.to_chw(), (1, 9, size, size), &dev).unwrap();
     let psnr_of = |pred: &Tensor| {
         let mse: f32 = (pred - &tgt)
