@@ -4,6 +4,7 @@
 //! [model]
 //! preset = "tiny"            # tiny | small | paper | path to a model config (.toml/.json)
 //! init_seed = 0
+//! init_weights = "assets/demo-weights/pixl-tiny-synth.safetensors"   # optional: fine-tune from these
 //! [data]
 //! dataset = "synth:data/synth"   # see pixl_train::data::open
 //! split = "train"
@@ -47,6 +48,12 @@ pub struct TrainConfig {
 pub struct ModelSection {
     pub preset: String,
     pub init_seed: u64,
+    /// Start from these weights instead of a random initialisation (fine-tuning). The file
+    /// (a `pixl` checkpoint) must store the same model config as `preset`; the optimiser
+    /// moments and the step still start from zero. Ignored by `--resume`, which restores the
+    /// run's own state.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub init_weights: Option<PathBuf>,
 }
 
 impl Default for ModelSection {
@@ -54,6 +61,7 @@ impl Default for ModelSection {
         Self {
             preset: "tiny".into(),
             init_seed: 0,
+            init_weights: None,
         }
     }
 }

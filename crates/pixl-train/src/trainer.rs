@@ -26,7 +26,7 @@ use pixl_core::{Image, Rng};
 use pixl_model::{Config, PixlRelight};
 use std::collections::BTreeMap;
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 const STREAM_AUGMENT: u64 = 0xA06;
@@ -56,6 +56,26 @@ pub struct Trainer {
     device: Device,
     /// Optimiser steps completed.
     pub step: u64,
+}
+
+/// Overwrites the fresh weights in `varmap` with those of checkpoint `path`, which must store
+/// the model config `cfg` (`[model] init_weights`).
+fn init_from(path: &Path, cfg: &Config, varmap: &VarMap) -> Result<()> {
+    let stored = pixl_model::checkpoint::read_config(path)?;
+    if stored != *cfg {
+        return Err(TrainError::File {
+            path: path.to_owned(),
+            reason: format!(
+                "[model] init_weights holds a different model config than this run's preset \
+                 (stored width d = {}, trunk depth {}; this run d = {}, trunk depth {}): set [model] preset to \
+                 the checkpoint's config",
+                stored.dim, stored.trunk.depth, cfg.dim, cfg.trunk.depth
+            ),
+        });
+    }
+    pixl_model::checkpoint::load_into_varmap(path, varmap)?;
+    tracing::info!("initialised the weights from {}", path.display());
+    Ok(())
 }
 
 fn vars_of(varmap: &VarMap) -> Result<BTreeMap<String, Var>> {
@@ -92,6 +112,9 @@ impl Trainer {
         let model_cfg = Config::from_name_or_file(&cfg.model.preset)
             .map_err(|e| TrainError::Config(format!("[model] preset: {e}")))?;
         let (varmap, model) = pixl_model::build_trainable(&model_cfg, cfg.model.init_seed, device)?;
+        if let Some(path) = &cfg.model.init_weights {
+            init_from(path, &model_cfg, &varmap)?;
+        }
         let opt = AdamW::new(vars_of(&varmap)?, cfg.optim.adamw.clone())?;
         let sampler = Sampler::new(scenes, cfg.data.sampler.clone(), cfg.optim.batch_size, cfg.run.seed)?;
         let perceptual = match (&cfg.loss.vgg, cfg.loss.perceptual_weight > 0.0) {

@@ -116,6 +116,69 @@ fn resume_is_bit_exact() {
     assert!(log.contains("\"l1_only\":true"));
 }
 
+/// `[model] init_weights` (fine-tuning): a new run starts from a checkpoint's weights, which
+/// a separate load of that file reproduces exactly; a checkpoint of another model config is
+/// refused with an error that names the setting.
+#[test]
+fn init_weights_starts_from_a_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    fake_set(&data, 2, 2, 32);
+    let dev = Device::Cpu;
+    let mut cfg = small_config(&data, &dir.path().join("a"));
+    cfg.run.steps = 10;
+    let mut a = Trainer::new(cfg, &dev).unwrap();
+    a.run(|_| {}).unwrap();
+    a.save_checkpoint().unwrap();
+    let ckpt = dir.path().join("a/model.safetensors");
+
+    let src = Tensor::rand(0f32, 1.0, (1, 3, 32, 32), &dev).unwrap();
+    let ct = Tensor::rand(0f32, 1.0, (1, 9, 32, 32), &dev).unwrap();
+    let out = |m: &pixl_model::PixlRelight| -> Vec<f32> {
+        m.forward_unclipped(&src, &ct)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap()
+    };
+    let (_, loaded) = pixl_model::checkpoint::load(&ckpt, &dev, candle_core::DType::F32).unwrap();
+    let want = out(&loaded);
+
+    let mut cfg = small_config(&data, &dir.path().join("b"));
+    cfg.model.init_weights = Some(ckpt.clone());
+    let b = Trainer::new(cfg, &dev).unwrap();
+    // The trainer builds the differentiable graph, `load` the inference one (fast kernels):
+    // equal up to float rounding.
+    let max_diff = |a: &[f32], b: &[f32]| a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+    let d_start = max_diff(&out(b.model()), &want);
+    let fresh = Trainer::new(small_config(&data, &dir.path().join("c")), &dev).unwrap();
+    let d_fresh = max_diff(&out(fresh.model()), &want);
+    assert!(want.iter().all(|v| v.is_finite()));
+    assert!(
+        d_start < 1e-5,
+        "fine-tuning start differs from the checkpoint by {d_start}"
+    );
+    assert!(
+        d_fresh > 1e-3,
+        "the checkpoint equals a fresh initialisation ({d_fresh}): the test proves nothing"
+    );
+
+    // Another model config: refused, naming the setting.
+    let mut other = pixl_model::Config::tiny();
+    other.head.features = 16;
+    let (varmap, _) = pixl_model::build_trainable(&other, 0, &dev).unwrap();
+    let other_path = dir.path().join("other.safetensors");
+    pixl_model::save(&other_path, &varmap, &other).unwrap();
+    let mut cfg = small_config(&data, &dir.path().join("d"));
+    cfg.model.init_weights = Some(other_path);
+    let e = Trainer::new(cfg, &dev).err().unwrap().to_string();
+    assert!(
+        e.contains("init_weights") && e.contains("different model config"),
+        "{e}"
+    );
+}
+
 #[test]
 fn perceptual_without_vgg_refuses_to_start() {
     let dir = tempfile::tempdir().unwrap();

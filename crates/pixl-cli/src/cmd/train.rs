@@ -7,7 +7,7 @@ use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
 #[command(
-    after_help = "Examples:\n  pixl train --config assets/demo-weights/train.toml\n  pixl train --config train.toml --resume"
+    after_help = "Examples:\n  pixl train --config assets/demo-weights/train.toml\n  pixl train --config train.toml --resume\n  pixl train --config train.toml --init-weights assets/demo-weights/pixl-tiny-synth.safetensors"
 )]
 pub struct Args {
     /// The run's `train.toml` (see `pixl_train::config`).
@@ -28,6 +28,10 @@ pub struct Args {
     /// Override `[run] out_dir`.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Fine-tune: start from these weights (`[model] init_weights`; the checkpoint's model
+    /// config must match `[model] preset`). Ignored with `--resume`.
+    #[arg(long)]
+    pub init_weights: Option<PathBuf>,
 }
 
 pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
@@ -41,11 +45,20 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     if let Some(s) = args.steps {
         cfg.run.steps = s;
     }
+    if let Some(w) = args.init_weights {
+        cfg.model.init_weights = Some(w);
+    }
     if let Some(o) = args.out {
         cfg.run.out_dir = o;
     }
     let device = candle_core::Device::Cpu;
-    let mut trainer = pixl_train::Trainer::new(cfg.clone(), &device)?;
+    // A resumed run restores its own weights: the fine-tuning start is not read again (and
+    // need not exist any more); train.toml keeps naming it.
+    let mut build_cfg = cfg.clone();
+    if args.resume {
+        build_cfg.model.init_weights = None;
+    }
+    let mut trainer = pixl_train::Trainer::new(build_cfg, &device)?;
     if args.resume {
         trainer
             .restore()
