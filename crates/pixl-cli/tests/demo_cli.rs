@@ -40,8 +40,8 @@ fn demo_writes_a_complete_report() {
     }
     assert_eq!(
         html.matches("<span class=\"m\">PSNR").count(),
-        2 * presets.len(),
-        "PSNR under source and relit"
+        3 * presets.len(),
+        "PSNR under source, path-traced render and relit"
     );
     for p in presets {
         assert!(html.contains(&format!("<h2>{p}</h2>")), "{p}");
@@ -60,8 +60,25 @@ fn demo_writes_a_complete_report() {
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let rows = v["presets"].as_array().unwrap();
     assert_eq!(rows.len(), presets.len());
-    for r in rows {
+    for (r, p) in rows.iter().zip(presets) {
         let ssim = r["relit"]["ssim"].as_f64().unwrap();
         assert!(ssim.is_finite() && ssim <= 1.0 + 1e-9, "{r}");
+        // The path-traced render's PSNR, recomputed here in f64 from the written 8-bit PNGs
+        // (quantisation moves it by far less than 0.1 dB at these error levels).
+        let load = |f: &str| pixl_core::io::read_image(&out.join(p).join(f)).unwrap();
+        let (a, b) = (load("path_traced.png"), load("ground_truth.png"));
+        let mse = a
+            .data
+            .iter()
+            .zip(&b.data)
+            .map(|(x, y)| (*x as f64 - *y as f64).powi(2))
+            .sum::<f64>()
+            / a.data.len() as f64;
+        let want = -10.0 * mse.log10();
+        let got = r["path_traced"]["psnr"].as_f64().unwrap();
+        assert!(
+            (got - want).abs() < 0.1,
+            "{p}: path-traced PSNR {got} vs {want} from the PNGs"
+        );
     }
 }
