@@ -82,6 +82,19 @@ fn synth_then_train_then_resume() {
         .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()?["step"].as_u64())
         .collect();
     assert_eq!(steps, [0, 1, 2, 2, 3, 4], "start events then one line per step:\n{log}");
+    // Resuming with a changed optimiser setting works but warns that it is no longer bit-exact.
+    let changed = std::fs::read_to_string(config(dir.path(), 5, 0.0))
+        .unwrap()
+        .replace("peak_lr = 1e-3", "peak_lr = 5e-4");
+    let changed_path = dir.path().join("changed.toml");
+    std::fs::write(&changed_path, changed).unwrap();
+    let warned = pixl(&["train", "--resume", "--config", changed_path.to_str().unwrap()]);
+    assert!(warned.status.success(), "{}", String::from_utf8_lossy(&warned.stderr));
+    let err = String::from_utf8_lossy(&warned.stderr);
+    assert!(
+        err.contains("no longer bit-exact") && err.contains("optim.schedule.peak_lr: 0.001 → 0.0005"),
+        "{err}"
+    );
     let (_, _model) = pixl_model::load(
         &run.join("model.safetensors"),
         &candle_core::Device::Cpu,

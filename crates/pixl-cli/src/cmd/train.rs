@@ -71,7 +71,22 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         );
     }
     std::fs::create_dir_all(&cfg.run.out_dir).with_context(|| format!("creating {}", cfg.run.out_dir.display()))?;
-    pixl_core::io::atomic_write_bytes(&cfg.run.out_dir.join("train.toml"), cfg.to_toml()?.as_bytes())?;
+    let saved = cfg.run.out_dir.join("train.toml");
+    let text = cfg.to_toml()?;
+    if args.resume {
+        if let Ok(before) = std::fs::read_to_string(&saved) {
+            let changed = changed_settings(&before, &text);
+            if !changed.is_empty() {
+                tracing::warn!(
+                    "settings differ from the run's {} (the continued run is no longer bit-exact with an \
+                     uninterrupted one): {}",
+                    saved.display(),
+                    changed.join("; ")
+                );
+            }
+        }
+    }
+    pixl_core::io::atomic_write_bytes(&saved, text.as_bytes())?;
     if cfg.loss.perceptual_weight == 0.0 {
         ctx.say("perceptual weight 0: training with the L1 loss only");
     }
@@ -93,4 +108,72 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         trainer.model_path().display()
     ));
     Ok(())
+}
+
+/// Settings of `before` and `after` (two `train.toml` texts) that differ, as
+/// `key: old → new`, leaving out those a resumed run may change freely (its length, output
+/// directory and logging / checkpoint intervals). Unparseable text compares as empty.
+fn changed_settings(before: &str, after: &str) -> Vec<String> {
+    const FREE: [&str; 5] = [
+        "run.steps",
+        "run.out_dir",
+        "run.log_every",
+        "run.sample_every",
+        "run.checkpoint_every",
+    ];
+    fn flatten(prefix: &str, v: &toml::Value, out: &mut std::collections::BTreeMap<String, String>) {
+        match v {
+            toml::Value::Table(t) => {
+                for (k, v) in t {
+                    let key = if prefix.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{prefix}.{k}")
+                    };
+                    flatten(&key, v, out);
+                }
+            }
+            other => {
+                out.insert(prefix.to_string(), other.to_string());
+            }
+        }
+    }
+    let parse = |text: &str| {
+        let mut m = std::collections::BTreeMap::new();
+        if let Ok(v) = text.parse::<toml::Value>() {
+            flatten("", &v, &mut m);
+        }
+        m
+    };
+    let (a, b) = (parse(before), parse(after));
+    let keys: std::collections::BTreeSet<&String> = a.keys().chain(b.keys()).collect();
+    keys.into_iter()
+        .filter(|k| !FREE.contains(&k.as_str()))
+        .filter_map(|k| {
+            let (x, y) = (a.get(k), b.get(k));
+            (x != y).then(|| {
+                let show = |v: Option<&String>| v.cloned().unwrap_or_else(|| "(unset)".into());
+                format!("{k}: {} → {}", show(x), show(y))
+            })
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::changed_settings;
+
+    #[test]
+    fn changed_settings_lists_only_relevant_differences() {
+        let before = "[optim]\nbatch_size = 4\n[optim.schedule]\npeak_lr = 0.001\n[run]\nsteps = 10\nout_dir = \"a\"\n";
+        let after = "[optim]\nbatch_size = 4\n[optim.schedule]\npeak_lr = 0.0005\nfinal_lr = 1e-5\n[run]\nsteps = 20\nout_dir = \"b\"\n";
+        assert_eq!(
+            changed_settings(before, after),
+            vec![
+                "optim.schedule.final_lr: (unset) → 0.00001".to_string(),
+                "optim.schedule.peak_lr: 0.001 → 0.0005".to_string(),
+            ]
+        );
+        assert!(changed_settings(before, before).is_empty());
+    }
 }
