@@ -153,6 +153,10 @@ pub struct MeshOptions {
     pub stride: usize,
     /// Depths above this are background (default [`DEFAULT_MAX_DEPTH`]).
     pub max_depth: f32,
+    /// Put the outermost vertices on the image's edges (pixel coordinates 0 and width / height)
+    /// instead of the border pixels' centres, at those pixels' depths, so that the mesh covers
+    /// the whole frame (default false: every vertex at a pixel centre).
+    pub full_frame: bool,
 }
 
 impl Default for MeshOptions {
@@ -161,6 +165,7 @@ impl Default for MeshOptions {
             max_jump: DEFAULT_MAX_JUMP,
             stride: 1,
             max_depth: DEFAULT_MAX_DEPTH,
+            full_frame: false,
         }
     }
 }
@@ -252,7 +257,13 @@ pub fn depth_to_mesh(depth: &DepthMap, intr: &Intrinsics, normals: Option<&Image
             }
             remap[g] = u32::try_from(mesh.positions.len())
                 .map_err(|_| DepthError::Invalid("mesh has more than 2^32 vertices; use a larger stride".into()))?;
-            let (px, py) = (x as f64 + 0.5, y as f64 + 0.5);
+            // Pixel centre, or (full frame) the image edge for the outermost samples.
+            let at = |g: usize, n: usize, v: usize, size: usize| match (opts.full_frame, g) {
+                (true, 0) => 0.0,
+                (true, g) if g + 1 == n => size as f64,
+                _ => v as f64 + 0.5,
+            };
+            let (px, py) = (at(gx, gw, x, w), at(gy, gh, y, h));
             let p = intr.unproject(px, py, depth.get(x, y) as f64);
             mesh.positions.push(p.map(|c| c as f32));
             mesh.uvs.push([(px / w as f64) as f32, (py / h as f64) as f32]);

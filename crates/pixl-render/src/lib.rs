@@ -7,6 +7,7 @@
 //! - [`mesh`]: triangle meshes.
 //! - [`integrator::render`]: path-trace a scene into a [`Film`] of Cycles passes (`scene` →
 //!   [`geometry`] + [`bvh`] + [`light`] + [`material`] → [`integrator`] → [`film`]).
+//! - [`reconstruct::coarse_scene`]: the coarse scene of the paper's inference from a source render.
 // Index loops over fixed-size RGB / axis arrays read like the math; `!(x > 0.0)` is the
 // deliberate NaN-rejecting form.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
@@ -25,6 +26,7 @@ pub mod material;
 pub mod math;
 pub mod mesh;
 pub mod presets;
+pub mod reconstruct;
 pub mod sampling;
 pub mod scene;
 pub mod texture;

@@ -273,3 +273,49 @@ fn depth_files_read_in_metres() {
         .to_string();
     assert!(e.contains("d.txt"), "{e}");
 }
+
+/// `full_frame` moves the outermost vertices from the border pixels' centres to the image
+/// edges: a constant-depth map then spans exactly the frustum's cross-section at that depth.
+#[test]
+fn full_frame_mesh_reaches_the_image_edges() {
+    let (w, h, d) = (4usize, 3usize, 2.0f32);
+    let k = Intrinsics::from_focal_px(w, h, 5.0).unwrap();
+    let depth = DepthMap::new(w, h, vec![d; w * h]).unwrap();
+    let extent = |full_frame: bool| {
+        let m = depth_to_mesh(
+            &depth,
+            &k,
+            None,
+            &MeshOptions {
+                full_frame,
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        let xs = m.positions.iter().map(|p| p[0]);
+        let ys = m.positions.iter().map(|p| p[1]);
+        (
+            xs.clone().fold(f32::INFINITY, f32::min),
+            xs.fold(f32::NEG_INFINITY, f32::max),
+            ys.clone().fold(f32::INFINITY, f32::min),
+            ys.fold(f32::NEG_INFINITY, f32::max),
+            m.num_triangles(),
+        )
+    };
+    // Half-width at depth d: (w/2)·d/f; with pixel centres, half a pixel less.
+    let (hx, hy) = (w as f32 / 2.0 * d / 5.0, h as f32 / 2.0 * d / 5.0);
+    let (px, py) = ((w as f32 / 2.0 - 0.5) * d / 5.0, (h as f32 / 2.0 - 0.5) * d / 5.0);
+    let close = |a: f32, b: f32| (a - b).abs() < 1e-6;
+    let (x0, x1, y0, y1, n) = extent(true);
+    assert!(
+        close(x0, -hx) && close(x1, hx) && close(y0, -hy) && close(y1, hy),
+        "{x0} {x1} {y0} {y1}"
+    );
+    let (x0, x1, y0, y1, n_centres) = extent(false);
+    assert!(
+        close(x0, -px) && close(x1, px) && close(y0, -py) && close(y1, py),
+        "{x0} {x1} {y0} {y1}"
+    );
+    assert_eq!(n, n_centres);
+    assert_eq!(n, 2 * (w - 1) * (h - 1));
+}

@@ -126,7 +126,17 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     let coarse = if args.exact_intrinsics {
         None
     } else {
-        Some(reconstruct(&source_film, &scene, &args.out.join("reconstruction"))?)
+        // The "estimated" material: one mid-rough dielectric for the whole reconstruction.
+        let estimated = pixl_render::Material {
+            roughness: 0.5,
+            ..Default::default()
+        };
+        Some(pixl_render::reconstruct::coarse_scene(
+            &source_film,
+            &scene,
+            &estimated,
+            &args.out.join("reconstruction"),
+        )?)
     };
     let src_t = to_tensor(&source, &dev)?;
     let mut rows = Vec::new();
@@ -223,51 +233,6 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         ctx.say(format!("wrote {}", html_path.display()));
     }
     Ok(())
-}
-
-/// A coarse scene from the source render alone, as the paper's inference builds one from a
-/// photo: depth → mesh in world space (via the camera), diffuse colour → albedo texture. Files
-/// go to `dir`; the returned scene has no lights.
-fn reconstruct(source: &pixl_render::Film, scene: &Scene, dir: &Path) -> Result<Scene> {
-    use pixl_render::depth::{depth_to_mesh, DepthMap, Intrinsics, MeshOptions};
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    let depth = source.pass("Depth").context("the source render has no Depth pass")?;
-    let albedo = source
-        .pass("DiffCol")
-        .context("the source render has no DiffCol pass")?;
-    let (w, h) = (depth.width, depth.height);
-    let intr = Intrinsics::from_focal_px(w, h, scene.camera.focal_for_height(h as u32) as f64)?;
-    let mesh = depth_to_mesh(&DepthMap::new(w, h, depth.data)?, &intr, None, &MeshOptions::default())?;
-    pixl_render::export::ply::write_ply(&dir.join("mesh.ply"), &mesh)?;
-    let texture = albedo.map(|v| pixl_core::image::linear_to_srgb(v.clamp(0.0, 1.0)));
-    pixl_core::io::write_png(&dir.join("albedo.png"), &texture, pixl_core::io::PngDepth::Sixteen)?;
-    let (o, r, u, b) = scene.camera.frame();
-    let cam_to_world = [
-        [r[0], u[0], b[0], o[0]],
-        [r[1], u[1], b[1], o[1]],
-        [r[2], u[2], b[2], o[2]],
-        [0.0, 0.0, 0.0, 1.0],
-    ];
-    let mut coarse = Scene::new(scene.camera.clone());
-    coarse.world = scene.world.clone();
-    coarse.base_dir = dir.to_owned();
-    coarse.objects.push(pixl_render::Object {
-        name: "reconstruction".into(),
-        shape: pixl_render::Shape::Mesh {
-            path: "mesh.ply".into(),
-        },
-        transform: pixl_render::Transform {
-            matrix: Some(cam_to_world),
-            ..Default::default()
-        },
-        material: pixl_render::Material {
-            base_color_texture: Some("albedo.png".into()),
-            roughness: 0.5,
-            ..Default::default()
-        },
-    });
-    coarse.save(&dir.join("scene.toml"))?;
-    Ok(coarse)
 }
 
 struct Metrics {
