@@ -597,6 +597,8 @@ impl Bvh {
         tmax: f32,
         best: &mut Option<Hit>,
     ) -> bool {
+        #[cfg(test)]
+        tests::DEEP_CALLS.with(|c| c.set(c.get() + 1));
         self.traverse_body::<ANY>(start, ray, tmin, tmax, best)
     }
 }
@@ -759,6 +761,8 @@ impl Bvh {
 
     #[inline(never)]
     fn traverse_packet_deep<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
+        #[cfg(test)]
+        tests::DEEP_CALLS.with(|c| c.set(c.get() + 1));
         self.traverse_packet_body::<ANY>(start, act, p, tmin)
     }
 
@@ -1274,6 +1278,78 @@ mod tests {
             assert_eq!(want.is_some(), bvh.occluded_isa(isa, &ray, tmin, tmax), "ray {k}");
         }
         hits
+    }
+
+    thread_local! {
+        /// Calls of the stack-overflow fallbacks (`traverse_deep`, `traverse_packet_deep`).
+        pub(super) static DEEP_CALLS: std::cell::Cell<usize> = const { std::cell::Cell::new(0) };
+    }
+
+    /// Triangles nested along the z axis, each 1.25× the previous and all crossing the axis:
+    /// SAH peels them off one level at a time, so a ray along the axis must keep a sibling
+    /// per level pending — more than the traversal stack holds. The recursive fallback must
+    /// then give the brute-force answer (closest hit, any hit, single rays and packets).
+    #[test]
+    fn stack_overflow_fallback_matches_brute_force() {
+        let tris: Vec<Tri> = (0..240)
+            .map(|k| {
+                let s = 1.25f32.powi(k);
+                Tri {
+                    p0: V3::new(-s, -s, 1.0 + k as f32),
+                    e1: V3::new(3.0 * s, 0.0, 0.0),
+                    e2: V3::new(0.0, 3.0 * s, 0.0),
+                }
+            })
+            .collect();
+        let before = DEEP_CALLS.with(|c| c.get());
+        let mut rng = Rng::new(17);
+        let (bvh, perm) = Bvh::build(&tris);
+        for isa in Isa::available() {
+            for k in 0..40 {
+                let o = V3::new(rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(-1.0, 30.0));
+                let d = V3::new(rng.uniform(-0.01, 0.01), rng.uniform(-0.01, 0.01), 1.0).normalize();
+                let ray = Ray::new(o, d);
+                let want = brute(&tris, &ray, 0.0, f32::INFINITY);
+                let got = bvh.intersect_isa(isa, &ray, 0.0, f32::INFINITY);
+                match (want, got) {
+                    (Some(w), Some(h)) => same_hit(&tris, &perm, &ray, 0.0, f32::INFINITY, w, &h),
+                    (w, g) => panic!("ray {k}: brute {w:?} vs bvh {g:?}"),
+                }
+                assert!(bvh.occluded_isa(isa, &ray, 0.0, f32::INFINITY));
+                // Beyond the last triangle nothing is hit.
+                let past = Ray::new(V3::new(o.x, o.y, 300.0), d);
+                assert!(bvh.intersect_isa(isa, &past, 0.0, f32::INFINITY).is_none());
+            }
+            let rays: Vec<Ray> = (0..PACKET)
+                .map(|_| {
+                    let o = V3::new(rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), 0.0);
+                    Ray::new(
+                        o,
+                        V3::new(rng.uniform(-0.01, 0.01), rng.uniform(-0.01, 0.01), 1.0).normalize(),
+                    )
+                })
+                .collect();
+            let tmax = vec![f32::INFINITY; PACKET];
+            let mut got = vec![None; PACKET];
+            bvh.intersect_packet_isa(isa, &rays, 0.0, &tmax, &mut got);
+            for (ray, h) in rays.iter().zip(&got) {
+                let w = brute(&tris, ray, 0.0, f32::INFINITY).expect("the axis crosses every triangle");
+                same_hit(
+                    &tris,
+                    &perm,
+                    ray,
+                    0.0,
+                    f32::INFINITY,
+                    w,
+                    h.as_ref().expect("packet lane missed"),
+                );
+            }
+        }
+        let calls = DEEP_CALLS.with(|c| c.get()) - before;
+        assert!(
+            calls > 0,
+            "the fallback was never reached: the test does not exercise it"
+        );
     }
 
     #[test]
