@@ -111,3 +111,88 @@ fn perceptual_loss_without_vgg_refuses_to_start() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("--perceptual-weight 0") && err.contains("vgg"), "{err}");
 }
+
+/// `pixl synth --coarse` writes, for the test scenes only, the inference-setting C_T of each pair
+/// i → i+1 (whose albedo follows the exact one: the reconstruction's texture is the source's
+/// DiffCol), and `pixl eval --ct coarse` scores with them — or says how to make them.
+#[test]
+fn synth_coarse_then_eval_with_coarse_intrinsics() {
+    let dir = tempfile::tempdir().unwrap();
+    let synth = dir.path().join("synth");
+    let args = |coarse: bool, out: &Path| -> Vec<String> {
+        let mut v: Vec<String> = [
+            "-q", "synth", "--scenes", "2", "--lights", "2", "--size", "32", "--spp", "4",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        v.extend([
+            "--test-every".into(),
+            "2".into(),
+            "-o".into(),
+            out.display().to_string(),
+        ]);
+        if coarse {
+            v.push("--coarse".into());
+        }
+        v
+    };
+    let run = |a: Vec<String>| {
+        let a: Vec<&str> = a.iter().map(String::as_str).collect();
+        pixl(&a)
+    };
+    let out = run(args(true, &synth));
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // scene0001 is the test scene: pairs 0 → 1 and 1 → 0; the train scene gets none.
+    for f in ["light_1.from_light_0", "light_0.from_light_1"] {
+        assert!(synth.join(format!("scene0001/{f}.intrinsics.exr")).is_file(), "{f}");
+        assert!(synth.join(format!("scene0001/{f}.path_traced.png")).is_file(), "{f}");
+        assert!(!synth.join(format!("scene0000/{f}.intrinsics.exr")).exists(), "{f}");
+    }
+    let exact = pixl_intrinsics::ct::read_ct(&synth.join("scene0001/light_1.intrinsics.exr")).unwrap();
+    let coarse = pixl_intrinsics::ct::read_ct(&synth.join("scene0001/light_1.from_light_0.intrinsics.exr")).unwrap();
+    // Normalised cross-correlation of the albedos (scale-free: C_T is rescaled per file).
+    let (a, b) = (&exact.albedo.data, &coarse.albedo.data);
+    let dot = |x: &[f32], y: &[f32]| x.iter().zip(y).map(|(p, q)| *p as f64 * *q as f64).sum::<f64>();
+    let ncc = dot(a, b) / (dot(a, a) * dot(b, b)).sqrt();
+    assert!(ncc > 0.9, "coarse albedo does not follow the exact one: NCC {ncc}");
+    assert!(a != b, "the coarse C_T is the exact one: nothing was reconstructed");
+
+    let eval = |ct: &str, root: &Path| {
+        pixl(&[
+            "-q",
+            "eval",
+            "--dataset",
+            &format!("synth:{}", root.display()),
+            "--baselines",
+            "compose",
+            "--runs",
+            "0",
+            "--json",
+            "--ct",
+            ct,
+            "--out",
+            dir.path().join(format!("eval-{ct}")).to_str().unwrap(),
+        ])
+    };
+    let psnr = |o: &Output| -> f64 {
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        v["methods"][0]["psnr"].as_f64().unwrap()
+    };
+    let (p_exact, p_coarse) = (psnr(&eval("exact", &synth)), psnr(&eval("coarse", &synth)));
+    assert!(
+        p_exact.is_finite() && p_coarse.is_finite() && p_exact != p_coarse,
+        "{p_exact} {p_coarse}"
+    );
+    // A set made without --coarse: a clear error naming the missing file and the fix.
+    let plain = dir.path().join("plain");
+    assert!(run(args(false, &plain)).status.success());
+    let o = eval("coarse", &plain);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("from_light_") && err.contains("pixl synth --coarse"),
+        "{err}"
+    );
+}

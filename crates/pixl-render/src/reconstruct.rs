@@ -14,6 +14,15 @@ use crate::film::Film;
 use crate::scene::{Material, Object, Scene, Shape, Transform};
 use std::path::Path;
 
+/// The one material a coarse scene gets when no material estimator is at hand: a mid-rough
+/// dielectric (roughness 0.5, Blender's default specular), base colour from the albedo texture.
+pub fn estimated_material() -> Material {
+    Material {
+        roughness: 0.5,
+        ..Default::default()
+    }
+}
+
 /// Writes `dir/mesh.ply` and `dir/albedo.png` (16-bit sRGB) from `source` — a render of `scene`
 /// with the `Depth` and `DiffCol` passes — and returns a scene with `scene`'s camera and world,
 /// that mesh with `material` whose base colour is replaced by the albedo texture, no lights,

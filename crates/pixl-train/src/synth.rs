@@ -12,6 +12,13 @@
 //! shown with the display convention (`Film::combined_srgb`: Reinhard, auto-exposure, sRGB).
 //! `scenes.json` lists every scene, its split and its images ([`crate::data::Synth`] reads it).
 //!
+//! With `coarse` (`pixl synth --coarse`), every **test** scene also gets the C_T of the paper's
+//! inference setting for each evaluation pair `i → j = i + 1 (mod lightings)`: the coarse
+//! reconstruction of image `i` alone (its Depth pass → mesh, DiffCol → albedo texture, one
+//! estimated material; [`pixl_render::reconstruct::coarse_scene`]) rendered under lighting `j`
+//! and composed — `light_<j>.from_light_<i>.intrinsics.exr` ([`coarse_ct_path`]), beside that
+//! render shown like the images (`….path_traced.png`). `pixl eval --ct coarse` reads them.
+//!
 //! Everything is a pure function of `(seed, scene index, lighting index)`: same seed, same set.
 use crate::data::folder::{SynthImageRecord, SynthManifest, SynthSceneRecord, MANIFEST};
 use crate::data::Split;
@@ -33,6 +40,8 @@ pub struct SynthOptions {
     pub seed: u64,
     /// Every `test_every`-th scene (index `test_every − 1`, `2·test_every − 1`, …) is test.
     pub test_every: usize,
+    /// Also write the coarse-reconstruction C_T of every test pair (see the module docs).
+    pub coarse: bool,
 }
 
 impl Default for SynthOptions {
@@ -45,6 +54,7 @@ impl Default for SynthOptions {
             max_bounces: 2,
             seed: 0,
             test_every: 10,
+            coarse: false,
         }
     }
 }
@@ -266,13 +276,31 @@ pub fn draw_lighting(opts: &SynthOptions, index: usize, k: usize) -> (Vec<Light>
     (lights, world, kinds.join("+"))
 }
 
-/// Renders and composes one lighting; writes the PNG and the C_T EXR.
-fn render_one(opts: &SynthOptions, scene: &Scene, img_path: &Path, ct_path: &Path) -> Result<()> {
+/// Where `pixl synth --coarse` writes the C_T of relighting `source` to the lighting of
+/// `target` (both image paths of one scene) in the inference setting:
+/// `<target stem>.from_<source stem>.intrinsics.exr` beside the target.
+pub fn coarse_ct_path(source: &Path, target: &Path) -> PathBuf {
+    let stem = |p: &Path| {
+        p.file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    target.with_file_name(format!("{}.from_{}.intrinsics.exr", stem(target), stem(source)))
+}
+
+/// Renders and composes one lighting; writes the PNG and the C_T EXR; returns the passes.
+fn render_one(
+    opts: &SynthOptions,
+    seed: u64,
+    scene: &Scene,
+    img_path: &Path,
+    ct_path: &Path,
+) -> Result<pixl_render::Film> {
     let ropts = RenderOptions {
         spp: opts.spp,
         width: Some(opts.size),
         height: Some(opts.size),
-        seed: opts.seed,
+        seed,
         max_bounces: opts.max_bounces,
     };
     let film = pixl_render::render(scene, &ropts, &|_, _| {}).map_err(|e| TrainError::Other(format!("render: {e}")))?;
@@ -280,7 +308,7 @@ fn render_one(opts: &SynthOptions, scene: &Scene, img_path: &Path, ct_path: &Pat
     let composed = compose(&passes, &ComposeOptions::default())?;
     pixl_core::io::write_png(img_path, &film.combined_srgb(), pixl_core::io::PngDepth::Eight)?;
     pixl_intrinsics::ct::write_ct(ct_path, &composed.ct)?;
-    Ok(())
+    Ok(film)
 }
 
 /// Generates the whole set under `out`; `progress(done, total)` after every rendering.
@@ -292,14 +320,23 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
         )));
     }
     std::fs::create_dir_all(out).map_err(|e| TrainError::io(out, e))?;
-    let total = opts.scenes * opts.lights;
+    let is_test = |i: usize| opts.test_every > 0 && i % opts.test_every == opts.test_every - 1;
+    let n_coarse = if opts.coarse {
+        (0..opts.scenes).filter(|&i| is_test(i)).count() * opts.lights
+    } else {
+        0
+    };
+    let total = opts.scenes * opts.lights + n_coarse;
+    let mut done = 0;
     let mut records = Vec::new();
     for i in 0..opts.scenes {
         let name = format!("scene{i:04}");
         let dir = out.join(&name);
         std::fs::create_dir_all(&dir).map_err(|e| TrainError::io(&dir, e))?;
         let base = build_scene(opts, i, out)?;
+        let coarse = opts.coarse && is_test(i);
         let mut images = Vec::new();
+        let mut lit = Vec::new();
         for k in 0..opts.lights {
             let (lights, world, desc) = draw_lighting(opts, i, k);
             let mut scene = base.clone();
@@ -309,15 +346,44 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
                 format!("{name}/light_{k}.png"),
                 format!("{name}/light_{k}.intrinsics.exr"),
             );
-            render_one(opts, &scene, &out.join(&img), &out.join(&ct))?;
+            let film = render_one(opts, opts.seed, &scene, &out.join(&img), &out.join(&ct))?;
+            if coarse {
+                lit.push((scene, film));
+            }
             images.push(SynthImageRecord {
                 image: img,
                 intrinsics: ct,
                 lighting: desc,
             });
-            progress(i * opts.lights + k + 1, total);
+            done += 1;
+            progress(done, total);
         }
-        let is_test = opts.test_every > 0 && i % opts.test_every == opts.test_every - 1;
+        for (k, (source_scene, source_film)) in lit.iter().enumerate() {
+            let j = (k + 1) % opts.lights;
+            let recon_dir = dir.join(format!("coarse_from_light_{k}"));
+            let mut relit = pixl_render::reconstruct::coarse_scene(
+                source_film,
+                source_scene,
+                &pixl_render::reconstruct::estimated_material(),
+                &recon_dir,
+            )
+            .map_err(|e| TrainError::Other(format!("coarse reconstruction of {name}/light_{k}: {e}")))?;
+            relit.lights = lit[j].0.lights.clone();
+            relit.world = lit[j].0.world.clone();
+            let (src_img, tgt_img) = (out.join(&images[k].image), out.join(&images[j].image));
+            let ct_path = coarse_ct_path(&src_img, &tgt_img);
+            let traced = ct_path.with_file_name(
+                ct_path
+                    .file_name()
+                    .map(|n| n.to_string_lossy().replace(".intrinsics.exr", ".path_traced.png"))
+                    .unwrap_or_default(),
+            );
+            // Its own sample streams: the coarse render must not share the target's noise.
+            render_one(opts, opts.seed ^ 0xC0A4_5E00, &relit, &traced, &ct_path)?;
+            done += 1;
+            progress(done, total);
+        }
+        let is_test = is_test(i);
         records.push(SynthSceneRecord {
             name,
             split: if is_test { Split::Test } else { Split::Train },

@@ -126,15 +126,10 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     let coarse = if args.exact_intrinsics {
         None
     } else {
-        // The "estimated" material: one mid-rough dielectric for the whole reconstruction.
-        let estimated = pixl_render::Material {
-            roughness: 0.5,
-            ..Default::default()
-        };
         Some(pixl_render::reconstruct::coarse_scene(
             &source_film,
             &scene,
-            &estimated,
+            &pixl_render::reconstruct::estimated_material(),
             &args.out.join("reconstruction"),
         )?)
     };

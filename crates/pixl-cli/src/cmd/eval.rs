@@ -28,6 +28,12 @@ pub struct Args {
     /// Pair list, CSV `scene,source,target` (image file names). Default: per scene, image i → i+1 (mod n).
     #[arg(long)]
     pub pairs: Option<PathBuf>,
+    /// Which target intrinsics C_T the network and compose get: `exact` (the target's own, as
+    /// stored with the dataset) or `coarse` (synthetic sets made with `pixl synth --coarse`: the
+    /// coarse reconstruction of the *source* rendered under the target's lights — the paper's
+    /// inference setting; `<target>.from_<source>.intrinsics.exr`).
+    #[arg(long, default_value = "exact", value_parser = ["exact", "coarse"])]
+    pub ct: String,
     /// Evaluate only the first N pairs of the list.
     #[arg(long)]
     pub limit: Option<usize>,
@@ -89,6 +95,22 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     if let Some(n) = args.limit {
         pairs.truncate(n);
     }
+    if args.ct == "coarse" {
+        for p in &mut pairs {
+            let path = pixl_train::synth::coarse_ct_path(&p.source.image, &p.target.image);
+            if !path.is_file() {
+                anyhow::bail!(
+                    "--ct coarse: {} is missing (pair {} → {} of scene {}); make the set with `pixl synth --coarse` \
+                     (it writes the test pairs i → i+1)",
+                    path.display(),
+                    p.source_name(),
+                    p.target_name(),
+                    p.scene
+                );
+            }
+            p.target.intrinsics = Some(path);
+        }
+    }
     let device = parse_device(&args.device)?;
     let dtype = parse_dtype(&args.dtype)?;
 
@@ -113,7 +135,12 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     };
 
     let pb = ctx.progress(pairs.len() as u64, "eval");
-    let report = pixl_eval::run_eval(&args.dataset, &pairs, &methods, lpips.as_ref(), &opts, |i| {
+    let label = if args.ct == "coarse" {
+        format!("{} (C_T from coarse reconstructions)", args.dataset)
+    } else {
+        args.dataset.clone()
+    };
+    let report = pixl_eval::run_eval(&label, &pairs, &methods, lpips.as_ref(), &opts, |i| {
         pb.set_position(i as u64)
     })?;
     pb.finish_and_clear();

@@ -26,6 +26,11 @@ pub struct Args {
     /// Every N-th scene is held out as the test split.
     #[arg(long, default_value_t = 10)]
     pub test_every: usize,
+    /// Also write, for every test pair i → i+1, the C_T of the paper's inference setting: the
+    /// coarse reconstruction of image i (depth → mesh, diffuse colour → albedo) rendered under
+    /// lighting i+1 (`light_<j>.from_light_<i>.intrinsics.exr`; `pixl eval --ct coarse`).
+    #[arg(long)]
+    pub coarse: bool,
     /// Output directory.
     #[arg(short, long)]
     pub out: PathBuf,
@@ -40,10 +45,14 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         max_bounces: args.max_bounces,
         seed: args.seed,
         test_every: args.test_every,
+        coarse: args.coarse,
     };
     let pb = ctx.progress((args.scenes * args.lights) as u64, "synth");
     let t0 = std::time::Instant::now();
-    let manifest = pixl_train::synth::generate(&opts, &args.out, &|done, _| pb.set_position(done as u64))?;
+    let manifest = pixl_train::synth::generate(&opts, &args.out, &|done, total| {
+        pb.set_length(total as u64);
+        pb.set_position(done as u64)
+    })?;
     pb.finish_and_clear();
     let test = manifest
         .scenes
