@@ -6,6 +6,10 @@
 //!   to [0, 1] and sRGB-encoded by `pixl_train::data::load_image`), so the linear recomposition is
 //!   clipped to [0, 1] and sRGB-encoded ([`pixl_core::image::linear_to_srgb`]). This is what the
 //!   conditioning alone explains, without the source.
+//!   `compose-reinhard` ([`ComposeTonemap::Reinhard`]) shows the recomposition with Reinhard
+//!   auto-exposure instead ([`pixl_core::image::tonemap_reinhard`], key 0.18) — how the paper
+//!   displays path-traced renders and how `pixl synth` writes its images, so on synthetic sets it
+//!   is the recomposition shown exactly like the targets.
 //! - [`ModelMethod`]: a PIXLRelight checkpoint, `Î_T = f_θ(I_S, C_T)` (paper §3.2).
 use crate::error::{EvalError, Result};
 use crate::timing::{time_runs, Timing};
@@ -60,13 +64,28 @@ pub fn compose_baseline(ct: &Ct) -> Image {
     ct.recompose().map(|v| linear_to_srgb(v.clamp(0.0, 1.0)))
 }
 
-/// The recomposed target intrinsics as the prediction ([`compose_baseline`]).
+/// How [`Compose`] turns the linear recomposition into a displayed image.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ComposeTonemap {
+    /// Clip to [0, 1], sRGB-encode ([`compose_baseline`]).
+    #[default]
+    Clip,
+    /// Reinhard with auto-exposure ([`pixl_core::image::tonemap_reinhard`]).
+    Reinhard,
+}
+
+/// The recomposed target intrinsics as the prediction ([`compose_baseline`], or Reinhard).
 #[derive(Clone, Copy, Debug, Default)]
-pub struct Compose;
+pub struct Compose {
+    pub tonemap: ComposeTonemap,
+}
 
 impl Method for Compose {
     fn name(&self) -> &str {
-        "Compose (A⊙S+R of C_T)"
+        match self.tonemap {
+            ComposeTonemap::Clip => "Compose (A⊙S+R of C_T)",
+            ComposeTonemap::Reinhard => "Compose, Reinhard (A⊙S+R of C_T)",
+        }
     }
     fn cue(&self) -> &str {
         "Full intrinsics"
@@ -79,17 +98,23 @@ impl Method for Compose {
             method: self.name().into(),
             reason: "needs C_T".into(),
         })?;
-        Ok(compose_baseline(ct))
+        Ok(match self.tonemap {
+            ComposeTonemap::Clip => compose_baseline(ct),
+            ComposeTonemap::Reinhard => pixl_core::image::tonemap_reinhard(&ct.recompose()),
+        })
     }
 }
 
-/// Parses a `--baselines` list (`identity,compose`; empty entries ignored).
+/// Parses a `--baselines` list (`identity,compose,compose-reinhard`; empty entries ignored).
 pub fn parse_baselines(list: &str) -> Result<Vec<Box<dyn Method>>> {
     let mut out: Vec<Box<dyn Method>> = Vec::new();
     for name in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
         match name {
             "identity" => out.push(Box::new(Identity)),
-            "compose" => out.push(Box::new(Compose)),
+            "compose" => out.push(Box::new(Compose::default())),
+            "compose-reinhard" => out.push(Box::new(Compose {
+                tonemap: ComposeTonemap::Reinhard,
+            })),
             other => return Err(EvalError::UnknownBaseline(other.to_string())),
         }
     }
@@ -206,10 +231,61 @@ mod tests {
         assert!((out.get(1, 1, 2) - 1.0).abs() < 1e-6);
     }
 
+    /// Reinhard compose: per channel `v·k / (1 + v·k)`, sRGB-encoded, with the exposure `k =
+    /// 0.18 / exp(mean ln(1e-4 + luminance))` — recomputed here in f64; and being scale-free, it
+    /// shows a C_T and the same C_T with twice the shading (and residual) alike.
+    #[test]
+    fn compose_reinhard_is_auto_exposed_reinhard_of_recomposition() {
+        let a = Image::from_fn(3, 2, 3, |x, _, c| [0.5, 0.8, 0.3][c] * (x as f32 + 1.0) / 3.0);
+        let s = Image::from_fn(3, 2, 3, |_, y, c| 0.5 + y as f32 + 0.1 * c as f32);
+        let r = Image::from_fn(3, 2, 3, |x, _, c| 0.02 * (c + x) as f32);
+        let ct = Ct::new(a.clone(), s.clone(), r.clone()).unwrap();
+        let m = Compose {
+            tonemap: ComposeTonemap::Reinhard,
+        };
+        let out = m.predict(&a, Some(&ct)).unwrap();
+        let lin = |x: usize, y: usize, c: usize| (a.get(x, y, c) * s.get(x, y, c) + r.get(x, y, c)) as f64;
+        let mut log_sum = 0.0;
+        for y in 0..2 {
+            for x in 0..3 {
+                let l = 0.2126 * lin(x, y, 0) + 0.7152 * lin(x, y, 1) + 0.0722 * lin(x, y, 2);
+                log_sum += (1e-4 + l).ln();
+            }
+        }
+        let k = 0.18 / (log_sum / 6.0).exp();
+        for y in 0..2 {
+            for x in 0..3 {
+                for c in 0..3 {
+                    let v = lin(x, y, c) * k;
+                    let t = v / (1.0 + v);
+                    let want = if t <= 0.0031308 {
+                        12.92 * t
+                    } else {
+                        1.055 * t.powf(1.0 / 2.4) - 0.055
+                    };
+                    assert!((out.get(x, y, c) as f64 - want).abs() < 1e-5, "({x},{y},{c})");
+                }
+            }
+        }
+        let twice = Ct::new(a.clone(), s.map(|v| 2.0 * v), r.map(|v| 2.0 * v)).unwrap();
+        let out2 = m.predict(&a, Some(&twice)).unwrap();
+        let max_diff = out
+            .data
+            .iter()
+            .zip(&out2.data)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0f32, f32::max);
+        assert!(max_diff < 1e-3, "{max_diff}");
+    }
+
     #[test]
     fn baseline_list_parses_and_rejects() {
-        let m = parse_baselines("identity, compose").unwrap();
-        assert_eq!(m.iter().map(|m| m.needs_ct()).collect::<Vec<_>>(), vec![false, true]);
+        let m = parse_baselines("identity, compose,compose-reinhard").unwrap();
+        assert_eq!(
+            m.iter().map(|m| m.needs_ct()).collect::<Vec<_>>(),
+            vec![false, true, true]
+        );
+        assert_eq!(m[2].name(), "Compose, Reinhard (A⊙S+R of C_T)");
         assert!(matches!(parse_baselines("identity,magic"), Err(EvalError::UnknownBaseline(n)) if n == "magic"));
         assert!(parse_baselines("").unwrap().is_empty());
     }
@@ -218,6 +294,6 @@ mod tests {
     fn identity_returns_source() {
         let img = Image::from_fn(3, 2, 3, |x, y, c| (x + y + c) as f32 / 10.0);
         assert_eq!(Identity.predict(&img, None).unwrap(), img);
-        assert!(Compose.predict(&img, None).is_err());
+        assert!(Compose::default().predict(&img, None).is_err());
     }
 }

@@ -29,7 +29,7 @@ pub enum EvalError {
     },
     #[error("method {method}: {reason}")]
     Method { method: String, reason: String },
-    #[error("unknown baseline {0:?} (expected identity or compose)")]
+    #[error("unknown baseline {0:?} (expected identity, compose or compose-reinhard)")]
     UnknownBaseline(String),
     #[error("nothing to evaluate: {0}")]
     Empty(String),

@@ -22,7 +22,9 @@ pub struct Args {
     /// PIXLRelight checkpoint (.safetensors) to evaluate as "Ours".
     #[arg(long)]
     pub weights: Option<PathBuf>,
-    /// Baselines, comma-separated: identity (the source), compose (A⊙S+R of C_T). Empty for none.
+    /// Baselines, comma-separated: identity (the source), compose (A⊙S+R of C_T, clipped, sRGB),
+    /// compose-reinhard (A⊙S+R shown with Reinhard auto-exposure, as `pixl synth` shows its
+    /// images). Empty for none.
     #[arg(long, default_value = "identity,compose")]
     pub baselines: String,
     /// Pair list, CSV `scene,source,target` (image file names). Default: per scene, image i → i+1 (mod n).
