@@ -112,7 +112,7 @@ fn perceptual_loss_without_vgg_refuses_to_start() {
     assert!(err.contains("--perceptual-weight 0") && err.contains("vgg"), "{err}");
 }
 
-/// `pixl synth --coarse` writes, for the test scenes only, the inference-setting C_T of each pair
+/// `pixl synth --coarse` writes, for every scene, the inference-setting C_T of each pair
 /// i → i+1 (whose albedo follows the exact one: the reconstruction's texture is the source's
 /// DiffCol), and `pixl eval --ct coarse` scores with them — or says how to make them.
 #[test]
@@ -143,11 +143,18 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
     };
     let out = run(args(true, &synth));
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    // scene0001 is the test scene: pairs 0 → 1 and 1 → 0; the train scene gets none.
-    for f in ["light_1.from_light_0", "light_0.from_light_1"] {
-        assert!(synth.join(format!("scene0001/{f}.intrinsics.exr")).is_file(), "{f}");
-        assert!(synth.join(format!("scene0001/{f}.path_traced.png")).is_file(), "{f}");
-        assert!(!synth.join(format!("scene0000/{f}.intrinsics.exr")).exists(), "{f}");
+    // Pairs 0 → 1 and 1 → 0 of both scenes (scene0001 is the test scene), nothing else.
+    for scene in ["scene0000", "scene0001"] {
+        for f in ["light_1.from_light_0", "light_0.from_light_1"] {
+            assert!(synth.join(format!("{scene}/{f}.intrinsics.exr")).is_file(), "{f}");
+            assert!(synth.join(format!("{scene}/{f}.path_traced.png")).is_file(), "{f}");
+        }
+        let n = std::fs::read_dir(synth.join(scene)).unwrap().count();
+        assert_eq!(
+            n,
+            4 + 4 + 2,
+            "{scene}: 2 images + 2 C_T, 2 coarse C_T + 2 renders, 2 reconstructions"
+        );
     }
     let exact = pixl_intrinsics::ct::read_ct(&synth.join("scene0001/light_1.intrinsics.exr")).unwrap();
     let coarse = pixl_intrinsics::ct::read_ct(&synth.join("scene0001/light_1.from_light_0.intrinsics.exr")).unwrap();

@@ -12,12 +12,14 @@
 //! shown with the display convention (`Film::combined_srgb`: Reinhard, auto-exposure, sRGB).
 //! `scenes.json` lists every scene, its split and its images ([`crate::data::Synth`] reads it).
 //!
-//! With `coarse` (`pixl synth --coarse`), every **test** scene also gets the C_T of the paper's
-//! inference setting for each evaluation pair `i → j = i + 1 (mod lightings)`: the coarse
+//! With `coarse` (`pixl synth --coarse`), every scene also gets the C_T of the paper's inference
+//! setting for each pair `i → j = i + 1 (mod lightings)` (the evaluation pairs): the coarse
 //! reconstruction of image `i` alone (its Depth pass → mesh, DiffCol → albedo texture, one
 //! estimated material; [`pixl_render::reconstruct::coarse_scene`]) rendered under lighting `j`
 //! and composed — `light_<j>.from_light_<i>.intrinsics.exr` ([`coarse_ct_path`]), beside that
-//! render shown like the images (`….path_traced.png`). `pixl eval --ct coarse` reads them.
+//! render shown like the images (`….path_traced.png`). `pixl eval --ct coarse` reads those of
+//! the test scenes; training can condition on those of the train scenes
+//! (`[data.sampler] coarse_ct`).
 //!
 //! Everything is a pure function of `(seed, scene index, lighting index)`: same seed, same set.
 use crate::data::folder::{SynthImageRecord, SynthManifest, SynthSceneRecord, MANIFEST};
@@ -40,7 +42,7 @@ pub struct SynthOptions {
     pub seed: u64,
     /// Every `test_every`-th scene (index `test_every − 1`, `2·test_every − 1`, …) is test.
     pub test_every: usize,
-    /// Also write the coarse-reconstruction C_T of every test pair (see the module docs).
+    /// Also write the coarse-reconstruction C_T of every pair `i → i+1` (see the module docs).
     pub coarse: bool,
 }
 
@@ -321,11 +323,7 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
     }
     std::fs::create_dir_all(out).map_err(|e| TrainError::io(out, e))?;
     let is_test = |i: usize| opts.test_every > 0 && i % opts.test_every == opts.test_every - 1;
-    let n_coarse = if opts.coarse {
-        (0..opts.scenes).filter(|&i| is_test(i)).count() * opts.lights
-    } else {
-        0
-    };
+    let n_coarse = if opts.coarse { opts.scenes * opts.lights } else { 0 };
     let total = opts.scenes * opts.lights + n_coarse;
     let mut done = 0;
     let mut records = Vec::new();
@@ -334,7 +332,7 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
         let dir = out.join(&name);
         std::fs::create_dir_all(&dir).map_err(|e| TrainError::io(&dir, e))?;
         let base = build_scene(opts, i, out)?;
-        let coarse = opts.coarse && is_test(i);
+        let coarse = opts.coarse;
         let mut images = Vec::new();
         let mut lit = Vec::new();
         for k in 0..opts.lights {

@@ -368,3 +368,71 @@ fn rect_all(w: usize, h: usize) -> pixl_train::data::sampler::CropRect {
         height: h,
     }
 }
+
+/// A loader that marks C_T by where it comes from: the light id of the target, + 50 when the
+/// entry names an explicit (coarse) C_T file.
+struct MarkLoader;
+
+impl Loader for MarkLoader {
+    fn image(&self, e: &ImageEntry) -> pixl_train::Result<Image> {
+        Ok(ramp(24, 16, 3, 100.0 * light_id(e)))
+    }
+    fn intrinsics(&self, e: &ImageEntry) -> pixl_train::Result<Image> {
+        let coarse = e
+            .intrinsics
+            .as_ref()
+            .is_some_and(|p| p.to_string_lossy().contains(".from_"));
+        Ok(Image::new(24, 16, 9).map(|_| light_id(e) + if coarse { 50.0 } else { 0.0 }))
+    }
+}
+
+/// `coarse_ct = 1` conditions on `pixl synth --coarse`'s C_T exactly for the pairs that have one
+/// (here only l0 → l1) and changes nothing else of a sample; `coarse_ct = 0` never does.
+#[test]
+fn coarse_ct_is_used_where_it_exists_and_keeps_the_random_stream() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene_dir = dir.path().join("s0");
+    std::fs::create_dir_all(&scene_dir).unwrap();
+    std::fs::write(scene_dir.join("l1.from_l0.intrinsics.exr"), b"marker").unwrap();
+    let scenes = vec![SceneEntry {
+        name: "s0".into(),
+        images: (0..3)
+            .map(|l| ImageEntry {
+                image: scene_dir.join(format!("l{l}.png")),
+                intrinsics: None,
+            })
+            .collect(),
+    }];
+    let cfg = |p: f32| SamplerConfig {
+        long_side: 16,
+        multiple: 4,
+        coarse_ct: p,
+        ..Default::default()
+    };
+    let plain = Sampler::new(scenes.clone(), cfg(0.0), 4, 5).unwrap();
+    let coarse = Sampler::new(scenes, cfg(1.0), 4, 5).unwrap();
+    let mut used = 0;
+    for step in 0..10 {
+        for (a, b) in plain
+            .batch(step, &MarkLoader)
+            .unwrap()
+            .into_iter()
+            .zip(coarse.batch(step, &MarkLoader).unwrap())
+        {
+            assert_eq!(
+                (a.source_index, a.target_index, a.crop, a.flipped),
+                (b.source_index, b.target_index, b.crop, b.flipped)
+            );
+            assert_eq!(a.ct.data[0], a.target_index as f32, "coarse_ct = 0 used a coarse C_T");
+            let want = if (b.source_index, b.target_index) == (0, 1) {
+                50.0
+            } else {
+                0.0
+            };
+            assert_eq!(b.ct.data[0], b.target_index as f32 + want);
+            used += (want > 0.0) as usize;
+        }
+    }
+    assert!(used > 0, "pair l0 -> l1 never drawn: the test proves nothing");
+    assert!(cfg(1.5).validate().is_err());
+}

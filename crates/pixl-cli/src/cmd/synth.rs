@@ -26,9 +26,10 @@ pub struct Args {
     /// Every N-th scene is held out as the test split.
     #[arg(long, default_value_t = 10)]
     pub test_every: usize,
-    /// Also write, for every test pair i → i+1, the C_T of the paper's inference setting: the
-    /// coarse reconstruction of image i (depth → mesh, diffuse colour → albedo) rendered under
-    /// lighting i+1 (`light_<j>.from_light_<i>.intrinsics.exr`; `pixl eval --ct coarse`).
+    /// Also write, for every pair i → i+1 of every scene, the C_T of the paper's inference
+    /// setting: the coarse reconstruction of image i (depth → mesh, diffuse colour → albedo)
+    /// rendered under lighting i+1 (`light_<j>.from_light_<i>.intrinsics.exr`; read by
+    /// `pixl eval --ct coarse` and by training with `[data.sampler] coarse_ct`). Doubles the time.
     #[arg(long)]
     pub coarse: bool,
     /// Output directory.

@@ -37,6 +37,12 @@ pub struct SamplerConfig {
     pub multiple: usize,
     /// Random horizontal flip with probability 1/2.
     pub flip: bool,
+    /// Probability of conditioning on the *coarse-reconstruction* C_T of the drawn pair
+    /// (`source → target`) instead of the target's exact one, where `pixl synth --coarse` wrote
+    /// it ([`crate::synth::coarse_ct_path`]): C_T with the artifacts of the paper's inference
+    /// setting, a simulation the paper's recipe approximates with App. C's corruptions.
+    /// 0 (default) = the paper's recipe.
+    pub coarse_ct: f32,
 }
 
 impl Default for SamplerConfig {
@@ -48,6 +54,7 @@ impl Default for SamplerConfig {
             min_scale: 1.0,
             multiple: 16,
             flip: true,
+            coarse_ct: 0.0,
         }
     }
 }
@@ -69,6 +76,9 @@ impl SamplerConfig {
         }
         if !(self.min_scale > 0.0 && self.min_scale <= 1.0) {
             return bad(format!("min_scale {} must be in (0, 1]", self.min_scale));
+        }
+        if !(0.0..=1.0).contains(&self.coarse_ct) {
+            return bad(format!("coarse_ct {} must be a probability in [0, 1]", self.coarse_ct));
         }
         Ok(())
     }
@@ -144,7 +154,8 @@ impl Loader for DiskLoader {
         self.cached(&entry.image, || load_image(&entry.image))
     }
     fn intrinsics(&self, entry: &ImageEntry) -> Result<Image> {
-        let key = super::intrinsics_path(&entry.image).with_extension("ct-cache");
+        // Keyed by the C_T file itself: one image can have several (exact, coarse).
+        let key = super::intrinsics_file(entry)?.with_extension("ct-cache");
         self.cached(&key, || super::load_intrinsics_image(entry))
     }
 }
@@ -227,7 +238,26 @@ impl Sampler {
         let (src_e, tgt_e) = (&scene.images[source_index], &scene.images[target_index]);
         let source = loader.image(src_e)?;
         let target = loader.image(tgt_e)?;
-        let ct = loader.intrinsics(tgt_e)?;
+        let (ow, oh) = self.batch_size_px(step);
+        let crop = draw_crop(
+            &mut rng,
+            source.width,
+            source.height,
+            ow as f32 / oh as f32,
+            self.cfg.min_scale,
+        );
+        let flipped = self.cfg.flip && rng.bernoulli(0.5);
+        // Drawn last and only when enabled: the paper's recipe keeps its random stream.
+        let coarse = (self.cfg.coarse_ct > 0.0 && rng.f32() < self.cfg.coarse_ct)
+            .then(|| crate::synth::coarse_ct_path(&src_e.image, &tgt_e.image))
+            .filter(|p| p.is_file());
+        let ct = match coarse {
+            Some(path) => loader.intrinsics(&ImageEntry {
+                image: tgt_e.image.clone(),
+                intrinsics: Some(path),
+            })?,
+            None => loader.intrinsics(tgt_e)?,
+        };
         for (what, img, entry) in [("target", &target, tgt_e), ("C_T", &ct, tgt_e)] {
             if (img.width, img.height) != (source.width, source.height) {
                 return Err(TrainError::File {
@@ -243,15 +273,6 @@ impl Sampler {
                 });
             }
         }
-        let (ow, oh) = self.batch_size_px(step);
-        let crop = draw_crop(
-            &mut rng,
-            source.width,
-            source.height,
-            ow as f32 / oh as f32,
-            self.cfg.min_scale,
-        );
-        let flipped = self.cfg.flip && rng.bernoulli(0.5);
         let prep = |img: &Image| {
             let out = crop_resize(img, crop, ow, oh);
             if flipped {
