@@ -322,7 +322,6 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
         )));
     }
     std::fs::create_dir_all(out).map_err(|e| TrainError::io(out, e))?;
-    let is_test = |i: usize| opts.test_every > 0 && i % opts.test_every == opts.test_every - 1;
     let n_coarse = if opts.coarse { opts.scenes * opts.lights } else { 0 };
     let total = opts.scenes * opts.lights + n_coarse;
     let mut done = 0;
@@ -332,7 +331,6 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
         let dir = out.join(&name);
         std::fs::create_dir_all(&dir).map_err(|e| TrainError::io(&dir, e))?;
         let base = build_scene(opts, i, out)?;
-        let coarse = opts.coarse;
         let mut images = Vec::new();
         let mut lit = Vec::new();
         for k in 0..opts.lights {
@@ -345,7 +343,7 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
                 format!("{name}/light_{k}.intrinsics.exr"),
             );
             let film = render_one(opts, opts.seed, &scene, &out.join(&img), &out.join(&ct))?;
-            if coarse {
+            if opts.coarse {
                 lit.push((scene, film));
             }
             images.push(SynthImageRecord {
@@ -381,7 +379,7 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
             done += 1;
             progress(done, total);
         }
-        let is_test = is_test(i);
+        let is_test = opts.test_every > 0 && i % opts.test_every == opts.test_every - 1;
         records.push(SynthSceneRecord {
             name,
             split: if is_test { Split::Test } else { Split::Train },

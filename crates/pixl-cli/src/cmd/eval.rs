@@ -103,7 +103,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             if !path.is_file() {
                 anyhow::bail!(
                     "--ct coarse: {} is missing (pair {} → {} of scene {}); make the set with `pixl synth --coarse` \
-                     (it writes the test pairs i → i+1)",
+                     (it writes the pairs i → i+1 of every scene)",
                     path.display(),
                     p.source_name(),
                     p.target_name(),

@@ -154,8 +154,13 @@ impl Loader for DiskLoader {
         self.cached(&entry.image, || load_image(&entry.image))
     }
     fn intrinsics(&self, entry: &ImageEntry) -> Result<Image> {
-        // Keyed by the C_T file itself: one image can have several (exact, coarse).
-        let key = super::intrinsics_file(entry)?.with_extension("ct-cache");
+        // Keyed by the C_T file itself: one image can have several (exact, coarse). (No file
+        // check here: a cache hit must not touch the disk; the load reports a missing file.)
+        let key = match &entry.intrinsics {
+            Some(p) => p.clone(),
+            None => super::intrinsics_path(&entry.image),
+        }
+        .with_extension("ct-cache");
         self.cached(&key, || super::load_intrinsics_image(entry))
     }
 }
