@@ -99,3 +99,57 @@ fn bad_inputs_are_refused_with_the_file_named() {
     assert!(e.contains("missing.exr") && e.contains("not found"), "{e}");
     assert!(!dir.path().join("out").join("scene.toml").exists());
 }
+
+/// By default the mesh covers the whole frame: on a constant-depth map the outermost vertices
+/// project onto the image's edges (pixel coordinates 0 and W/H, by the pinhole model computed
+/// here); `--pixel-centres` keeps them at the border pixels' centres, half a pixel inside.
+#[test]
+fn mesh_reaches_the_frame_edges_unless_pixel_centres() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h, d) = (6usize, 4usize, 3.0f32);
+    photo(&dir.path().join("photo.png"), w as u32, h as u32);
+    npy_f32(&dir.path().join("d.npy"), h, w, &vec![d; w * h]);
+    let f = 5.0f32;
+    let projected_extent = |extra: &[&str]| {
+        let out = dir.path().join(format!("scene{}", extra.len()));
+        let o = pixl()
+            .args(["reconstruct", "--image"])
+            .arg(dir.path().join("photo.png"))
+            .arg("--depth")
+            .arg(dir.path().join("d.npy"))
+            .args(["--focal", "5", "--format", "ply"])
+            .args(extra)
+            .arg("-o")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let mesh = pixl_render::export::load_mesh(&out.join("mesh.ply")).unwrap();
+        assert_eq!(mesh.num_triangles(), 2 * (w - 1) * (h - 1));
+        let px: Vec<f32> = mesh
+            .positions
+            .iter()
+            .map(|p| 0.5 * w as f32 + f * p[0] / -p[2])
+            .collect();
+        let py: Vec<f32> = mesh
+            .positions
+            .iter()
+            .map(|p| 0.5 * h as f32 - f * p[1] / -p[2])
+            .collect();
+        let lo_hi = |v: &[f32]| {
+            (
+                v.iter().copied().fold(f32::INFINITY, f32::min),
+                v.iter().copied().fold(f32::NEG_INFINITY, f32::max),
+            )
+        };
+        (lo_hi(&px), lo_hi(&py))
+    };
+    let close = |a: (f32, f32), b: (f32, f32)| (a.0 - b.0).abs() < 1e-4 && (a.1 - b.1).abs() < 1e-4;
+    let (x, y) = projected_extent(&[]);
+    assert!(close(x, (0.0, w as f32)) && close(y, (0.0, h as f32)), "{x:?} {y:?}");
+    let (x, y) = projected_extent(&["--pixel-centres"]);
+    assert!(
+        close(x, (0.5, w as f32 - 0.5)) && close(y, (0.5, h as f32 - 0.5)),
+        "{x:?} {y:?}"
+    );
+}

@@ -5,7 +5,8 @@
 //! The mesh lives in the camera's space (camera at the origin looking down −Z, +Y up; see
 //! `pixl_render::depth`), so the scene's camera is the default one with the photo's size and
 //! field of view. Maps must have the photo's size (no resampling); depth must be finite (mark
-//! missing depth as 0 — its triangles are cut).
+//! missing depth as 0 — its triangles are cut). The mesh reaches the frame's edges (outermost
+//! vertices on the image border, not at the border pixels' centres) unless `--pixel-centres`.
 use crate::Ctx;
 use anyhow::{bail, Context};
 use pixl_core::Image;
@@ -62,6 +63,11 @@ pub struct Args {
     /// Keep every N-th pixel in x and y (for big images).
     #[arg(long, default_value_t = 1)]
     pub stride: usize,
+    /// Put every vertex at its pixel's centre. By default the outermost vertices sit on the
+    /// image's edges (at the border pixels' depths), so that the mesh covers the whole frame
+    /// and renders of it have no half-pixel rim of background.
+    #[arg(long)]
+    pub pixel_centres: bool,
     /// Mesh file format.
     #[arg(long, value_enum, default_value_t = MeshFormat::Glb)]
     pub format: MeshFormat,
@@ -130,6 +136,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let opts = MeshOptions {
         max_jump: args.max_jump,
         stride: args.stride,
+        full_frame: !args.pixel_centres,
         ..Default::default()
     };
     if depth_map.count_valid(opts.max_depth) == 0 {
