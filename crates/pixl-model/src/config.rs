@@ -12,9 +12,21 @@
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// Patch size `p` of both encoders. Fixed: the ConvNeXt's strides (stem 4, two 2× downsamplings)
-/// multiply to 16, which is what makes its grid equal the ViT's.
+/// Patch size `p` of both encoders unless a config says otherwise (the paper's ViT-L/16). The
+/// ConvNeXt's strides follow it (stem 4, then one 2× downsampling per stage while the stride is
+/// below `p`), so that its grid equals the ViT's.
 pub const PATCH: usize = 16;
+
+/// Patch sizes the encoders can share: `4 · 2^k`, `k ≤ 3` (the ConvNeXt has three transitions).
+pub const PATCH_SIZES: [usize; 4] = [4, 8, 16, 32];
+
+fn default_patch() -> usize {
+    PATCH
+}
+
+fn is_default_patch(p: &usize) -> bool {
+    *p == PATCH
+}
 
 /// Source encoder (ViT, paper §3.2 "Asymmetric Feature Encoders").
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -81,6 +93,10 @@ pub struct DptConfig {
 pub struct Config {
     /// Token width `d` of both encoders' outputs, the fusion and the trunk (paper: 1024).
     pub dim: usize,
+    /// Patch size `p`: one token per `p × p` pixels (paper: 16; default 16, and configs or
+    /// checkpoints that do not name it mean 16). One of [`PATCH_SIZES`].
+    #[serde(default = "default_patch", skip_serializing_if = "is_default_patch")]
+    pub patch: usize,
     /// Epsilon of every layer norm.
     pub norm_eps: f64,
     pub src_encoder: VitConfig,
@@ -120,6 +136,7 @@ impl Config {
     pub fn paper() -> Self {
         Self {
             dim: 1024,
+            patch: PATCH,
             norm_eps: 1e-6,
             src_encoder: VitConfig {
                 depth: 24,
@@ -152,6 +169,7 @@ impl Config {
     pub fn small() -> Self {
         Self {
             dim: 384,
+            patch: PATCH,
             norm_eps: 1e-6,
             src_encoder: VitConfig {
                 depth: 6,
@@ -186,6 +204,7 @@ impl Config {
     pub fn tiny() -> Self {
         Self {
             dim: 64,
+            patch: PATCH,
             norm_eps: 1e-6,
             src_encoder: VitConfig {
                 depth: 2,
@@ -288,6 +307,9 @@ impl Config {
         if self.dim == 0 || v.depth == 0 || t.depth == 0 || v.mlp_ratio == 0 || t.mlp_ratio == 0 || v.pos_grid == 0 {
             return bad("dim, depths, mlp ratios and pos_grid must be positive".into());
         }
+        if !PATCH_SIZES.contains(&self.patch) {
+            return bad(format!("patch {} must be one of {PATCH_SIZES:?}", self.patch));
+        }
         if !(self.norm_eps > 0.0 && self.norm_eps.is_finite()) {
             return bad(format!("norm_eps must be positive, got {}", self.norm_eps));
         }
@@ -325,6 +347,13 @@ impl Config {
         Ok(())
     }
 
+    /// Whether ConvNeXt stage `s` (1–3) opens with a 2× downsampling (2×2 conv, stride 2) or
+    /// only changes width (1×1 conv): stride after the stem is 4, and stage `s` halves the
+    /// resolution while that keeps the stride at most `patch` (`4·2^s ≤ p`).
+    pub fn cond_downsamples(&self, s: usize) -> bool {
+        (4usize << s) <= self.patch
+    }
+
     /// Trunk head dimension `dim / trunk.heads`.
     pub fn trunk_head_dim(&self) -> usize {
         self.dim / self.trunk.heads
@@ -339,13 +368,13 @@ impl Config {
         let ln = |c: usize| 2 * c;
         let block = |r: usize| ln(d) + lin(d, 3 * d) + lin(d, d) + ln(d) + lin(d, r * d) + lin(r * d, d);
         let v = &self.src_encoder;
-        let src = conv(3, d, PATCH) + v.pos_grid * v.pos_grid * d + v.depth * block(v.mlp_ratio) + ln(d);
+        let src = conv(3, d, self.patch) + v.pos_grid * v.pos_grid * d + v.depth * block(v.mlp_ratio) + ln(d);
         let c = &self.cond_encoder;
         let mut cond = conv(9, c.dims[0], 4) + ln(c.dims[0]);
         for s in 0..4 {
             let ch = c.dims[s];
             if s > 0 {
-                let k = if s == 3 { 1 } else { 2 };
+                let k = if self.cond_downsamples(s) { 2 } else { 1 };
                 cond += ln(c.dims[s - 1]) + conv(c.dims[s - 1], ch, k);
             }
             cond += c.depths[s] * (conv(1, ch, 7) + ln(ch) + lin(ch, 4 * ch) + lin(4 * ch, ch) + ch);
@@ -401,6 +430,24 @@ mod tests {
             std::fs::write(&p, toml::to_string(&cfg).unwrap()).unwrap();
             assert_eq!(Config::from_file(&p).unwrap(), cfg);
         }
+    }
+
+    /// Configs and checkpoint metadata written before `patch` existed mean 16, and the default
+    /// is not written out (so their JSON is unchanged); another size round-trips.
+    #[test]
+    fn patch_defaults_to_16_and_round_trips() {
+        let mut json: serde_json::Value = serde_json::from_str(&Config::tiny().to_json()).unwrap();
+        assert!(json.get("patch").is_none());
+        assert_eq!(Config::from_json(&json.to_string()).unwrap().patch, 16);
+        json["patch"] = serde_json::json!(8);
+        let c = Config::from_json(&json.to_string()).unwrap();
+        assert_eq!(c.patch, 8);
+        assert_eq!(Config::from_json(&c.to_json()).unwrap(), c);
+        assert!(c.cond_downsamples(1) && !c.cond_downsamples(2) && !c.cond_downsamples(3));
+        let t = Config::tiny();
+        assert!(t.cond_downsamples(1) && t.cond_downsamples(2) && !t.cond_downsamples(3));
+        json["patch"] = serde_json::json!(12);
+        assert!(Config::from_json(&json.to_string()).is_err());
     }
 
     #[test]

@@ -1,8 +1,8 @@
 //! Intrinsics encoder `cond_encoder` (paper §3.2 "Asymmetric Feature Encoders"): a ConvNeXt over
 //! the 9-channel `C_T`, final-stage features projected to `d`.
 //!
-//! Input `(B, 9, H, W)` with `H`, `W` multiples of 16; output `(B, N, d)` tokens on the same
-//! `(H/16, W/16)` grid as the ViT, row-major.
+//! Input `(B, 9, H, W)` with `H`, `W` multiples of the patch size `p`; output `(B, N, d)` tokens
+//! on the same `(H/p, W/p)` grid as the ViT, row-major.
 //!
 //! Layout (timm `convnext` names): `stem.0` (4×4 conv, stride 4) + `stem.1` (LayerNorm2d);
 //! `stages.{s}.downsample.{0,1}` (LayerNorm2d + conv) before stages 1–3; `stages.{s}.blocks.{j}`
@@ -10,9 +10,10 @@
 //! → per-channel layer scale `gamma` → residual.
 //!
 //! Choices where the paper is silent:
-//! - stride 16, not 32: the last downsampling is dropped so the final stage's grid equals the
-//!   ViT's. The stage-3 transition still has to change width (512 → 1024 for ConvNeXt-B), so it
-//!   keeps its LayerNorm2d and replaces the 2×2 stride-2 conv by a 1×1 stride-1 conv;
+//! - stride `p` (16 by default), not 32: downsamplings past `p` are dropped so the final stage's
+//!   grid equals the ViT's. Such a transition still has to change width (512 → 1024 for
+//!   ConvNeXt-B), so it keeps its LayerNorm2d and replaces the 2×2 stride-2 conv by a 1×1
+//!   stride-1 conv ([`Config::cond_downsamples`]);
 //! - no stochastic depth; the final features go through `norm` (LayerNorm) then `proj`
 //!   (Linear `dims[3] → d`), even when `dims[3] == d`.
 use crate::config::Config;
@@ -112,7 +113,7 @@ impl ConvNextEncoder {
             let downsample = if s == 0 {
                 None
             } else {
-                let (k, stride) = if s == 3 { (1, 1) } else { (2, 2) };
+                let (k, stride) = if cfg.cond_downsamples(s) { (2, 2) } else { (1, 1) };
                 let vd = vs.pp("downsample");
                 let norm = LayerNorm2d::new(c.dims[s - 1], eps, vd.pp(0))?;
                 let conv_cfg = Conv2dConfig {
@@ -137,7 +138,7 @@ impl ConvNextEncoder {
         })
     }
 
-    /// `(B, 9, H, W)` → `(B, (H/16)(W/16), d)`.
+    /// `(B, 9, H, W)` → `(B, (H/p)(W/p), d)`.
     pub fn forward(&self, ct: &Tensor) -> Result<Tensor> {
         let mut xs = self.stem_norm.forward(&self.stem_conv.forward(ct)?)?;
         for stage in &self.stages {

@@ -3,14 +3,14 @@
 //! `forward(src, ct)`: `src` `(B, 3, H, W)` in `[0, 1]`, `ct` `(B, 9, H, W)` = `[A_T; S_T; R_T]`,
 //! any `H, W ≥ 1` (aspect 1:3 to 3:1 and beyond); returns `(B, 3, H, W)` f32 in `[0, 1]`.
 //!
-//! Pipeline: pad both inputs on the bottom and right to multiples of 16 by **replicating the
-//! edge** (reflection is undefined for a 1-pixel image; replication never invents new values),
+//! Pipeline: pad both inputs on the bottom and right to multiples of the patch size `p` (16) by
+//! **replicating the edge** (reflection is undefined for a 1-pixel image; replication never invents new values),
 //! `src_encoder` (ViT) and `cond_encoder` (ConvNeXt) → per-location `fuse` → `trunk` (registers,
 //! 2D RoPE) → four readouts → `head` (DPT) → `modulation` (1×1 conv → gain, bias), cropped back
 //! to `(H, W)` and applied to the unpadded source in f32.
 //!
 //! Inputs are cast to the weights' dtype (f32 or bf16) for the network itself.
-use crate::config::{Config, PATCH};
+use crate::config::Config;
 use crate::convnext::ConvNextEncoder;
 use crate::dpt::DptHead;
 use crate::fusion::Fusion;
@@ -103,7 +103,7 @@ impl PixlRelight {
         self.padded_features(src, ct)?.narrow(2, 0, h)?.narrow(3, 0, w)
     }
 
-    /// `F` at the padded size `(B, C', 16⌈H/16⌉, 16⌈W/16⌉)`.
+    /// `F` at the padded size `(B, C', p⌈H/p⌉, p⌈W/p⌉)`.
     fn padded_features(&self, src: &Tensor, ct: &Tensor) -> Result<Tensor> {
         let p = self.prepare(src, ct)?;
         let src_tokens = self.src_encoder.forward(&p.src)?;
@@ -124,7 +124,7 @@ impl PixlRelight {
     // so a caller that cuts the pass at these points (and recomputes a segment from its stored
     // input) gets bitwise the same values as the plain forward. Tensor names are unchanged.
 
-    /// Checks shapes, pads to multiples of 16 (edge replication) and casts to the weights' dtype.
+    /// Checks shapes, pads to multiples of the patch size (edge replication) and casts to the weights' dtype.
     pub fn prepare(&self, src: &Tensor, ct: &Tensor) -> Result<Prepared> {
         let (b, c, h, w) = src.dims4()?;
         let (cb, cc, ch, cw) = ct.dims4()?;
@@ -138,8 +138,9 @@ impl PixlRelight {
         if h == 0 || w == 0 {
             candle_core::bail!("PixlRelight: empty image {h}×{w}");
         }
-        let (ph, pw) = (h.div_ceil(PATCH) * PATCH, w.div_ceil(PATCH) * PATCH);
-        let (gh, gw) = (ph / PATCH, pw / PATCH);
+        let p = self.cfg.patch;
+        let (ph, pw) = (h.div_ceil(p) * p, w.div_ceil(p) * p);
+        let (gh, gw) = (ph / p, pw / p);
         Ok(Prepared {
             src: pad_replicate(&src.to_dtype(self.dtype)?, ph, pw)?,
             ct: pad_replicate(&ct.to_dtype(self.dtype)?, ph, pw)?,

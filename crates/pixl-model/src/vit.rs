@@ -13,7 +13,7 @@
 //!   and a final `norm`.
 //!
 //! [`Block`] and [`Attention`] are shared with the trunk, which adds 2D RoPE.
-use crate::config::{Config, PATCH};
+use crate::config::Config;
 use crate::layers::{conv2d, Conv};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2dConfig, Linear, VarBuilder};
@@ -114,10 +114,10 @@ impl VitEncoder {
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Self> {
         let v = &cfg.src_encoder;
         let conv_cfg = Conv2dConfig {
-            stride: PATCH,
+            stride: cfg.patch,
             ..Default::default()
         };
-        let patch_embed = conv2d(3, cfg.dim, PATCH, conv_cfg, vb.pp("patch_embed").pp("proj"))?;
+        let patch_embed = conv2d(3, cfg.dim, cfg.patch, conv_cfg, vb.pp("patch_embed").pp("proj"))?;
         let init = candle_nn::Init::Randn { mean: 0.0, stdev: 0.02 };
         let pos_embed = vb.get_with_hints((1, v.pos_grid * v.pos_grid, cfg.dim), "pos_embed", init)?;
         let blocks = (0..v.depth)
@@ -145,7 +145,7 @@ impl VitEncoder {
         resized.flatten_from(2)?.transpose(1, 2)
     }
 
-    /// `(B, 3, H, W)` → `(B, (H/16)(W/16), d)`.
+    /// `(B, 3, H, W)` → `(B, (H/p)(W/p), d)`.
     pub fn forward(&self, src: &Tensor) -> Result<Tensor> {
         let mut xs = self.embed(src)?;
         for i in 0..self.blocks.len() {

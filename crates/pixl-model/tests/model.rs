@@ -256,3 +256,79 @@ fn paper_fresh_network_returns_the_source() {
         "not the identity"
     );
 }
+
+/// `tiny` with another patch size: tokens per `p × p` pixels, ConvNeXt strides following it.
+fn tiny_with_patch(p: usize) -> Config {
+    let mut c = Config::tiny();
+    c.patch = p;
+    c.validate().unwrap();
+    c
+}
+
+/// Every allowed patch size builds, keeps the output size for odd sizes, is the identity at
+/// initialisation, and its closed-form parameter count matches the built network; the only
+/// shapes that change are the ViT patch kernel and the ConvNeXt transitions (2×2 where the
+/// stride still grows, 1×1 past `p`), counted here by hand.
+#[test]
+fn other_patch_sizes_build_run_and_count() {
+    let base = Config::tiny().param_count();
+    let d = 64;
+    for p in [4usize, 8, 32] {
+        let cfg = tiny_with_patch(p);
+        let (vm, model) = build_trainable(&cfg, 3, &Device::Cpu).unwrap();
+        assert_eq!(varmap_count(&vm), cfg.param_count(), "p={p}");
+        // Hand count of the difference to p = 16: patch kernel 3·p²·d vs 3·256·d; ConvNeXt
+        // transitions s = 1..3 between dims 16→32, 32→64, 64→64 use 2×2 (4 taps) iff 4·2^s ≤ p.
+        let dims = [16usize, 32, 64, 64];
+        let taps = |s: usize, p: usize| if (4 << s) <= p { 4 } else { 1 };
+        let mut diff = (3 * d * p * p) as i64 - (3 * d * 256) as i64;
+        for s in 1..4 {
+            diff += (dims[s - 1] * dims[s]) as i64 * (taps(s, p) as i64 - taps(s, 16) as i64);
+        }
+        assert_eq!(varmap_count(&vm) as i64, base as i64 + diff, "p={p}");
+        let mut rng = Rng::new(p as u64);
+        for (h, w) in [(37, 21), (8, 40)] {
+            let src = rand_tensor(&mut rng, &[1, 3, h, w], 0.0, 1.0);
+            let ct = rand_tensor(&mut rng, &[1, 9, h, w], 0.0, 2.0);
+            let out = model.forward(&src, &ct).unwrap();
+            assert_eq!(out.dims(), &[1, 3, h, w], "p={p} {h}x{w}");
+            assert_eq!(to_vec(&out), to_vec(&src), "p={p}: not the identity at init");
+        }
+    }
+    let mut bad = Config::tiny();
+    bad.patch = 12;
+    assert!(bad.validate().is_err());
+}
+
+/// With `p = 8` (ConvNeXt stages 2–3 without downsampling) every parameter still receives a
+/// finite, non-zero gradient.
+#[test]
+fn patch_8_gives_gradients_everywhere() {
+    let cfg = tiny_with_patch(8);
+    let (vm, model) = build_trainable(&cfg, 4, &Device::Cpu).unwrap();
+    let mut rng = Rng::new(8);
+    let data = vm.data().lock().unwrap();
+    let w = &data["modulation.conv.weight"];
+    w.set(&rand_tensor(&mut rng, w.dims(), -0.05, 0.05)).unwrap();
+    let src = rand_tensor(&mut rng, &[1, 3, 32, 24], 0.2, 0.8);
+    let ct = rand_tensor(&mut rng, &[1, 9, 32, 24], 0.0, 1.5);
+    let target = rand_tensor(&mut rng, &[1, 3, 32, 24], 0.0, 1.0);
+    let loss = (model.forward(&src, &ct).unwrap() - target)
+        .unwrap()
+        .abs()
+        .unwrap()
+        .mean_all()
+        .unwrap();
+    let grads = loss.backward().unwrap();
+    let missing: Vec<&String> = data
+        .keys()
+        .filter(|n| match grads.get(data[*n].as_tensor()) {
+            None => true,
+            Some(g) => {
+                let v = to_vec(g);
+                v.iter().any(|x| !x.is_finite()) || v.iter().all(|x| *x == 0.0)
+            }
+        })
+        .collect();
+    assert!(missing.is_empty(), "{missing:?}");
+}
