@@ -126,19 +126,11 @@ fn padding_replicates_the_border_and_crops_top_left() {
     }
 }
 
-#[test]
-fn every_parameter_of_tiny_gets_a_finite_nonzero_gradient() {
-    let (vm, model) = build_trainable(&Config::tiny(), 21, &Device::Cpu).unwrap();
-    let mut rng = Rng::new(99);
-    let data = vm.data().lock().unwrap();
-    let w = &data["modulation.conv.weight"];
-    w.set(&rand_tensor(&mut rng, w.dims(), -0.05, 0.05)).unwrap();
-    let src = rand_tensor(&mut rng, &[2, 3, 32, 48], 0.2, 0.8);
-    let ct = rand_tensor(&mut rng, &[2, 9, 32, 48], 0.0, 1.5);
-    let target = rand_tensor(&mut rng, &[2, 3, 32, 48], 0.0, 1.0);
-    let out = model.forward(&src, &ct).unwrap();
-    let loss = (out - target).unwrap().abs().unwrap().mean_all().unwrap();
-    let grads = loss.backward().unwrap();
+/// Every parameter whose gradient is missing, non-finite or all zero, sorted by name.
+fn gradient_offenders(
+    data: &std::collections::HashMap<String, candle_core::Var>,
+    grads: &candle_core::backprop::GradStore,
+) -> Vec<String> {
     let mut names: Vec<&String> = data.keys().collect();
     names.sort();
     let mut offenders = Vec::new();
@@ -155,6 +147,23 @@ fn every_parameter_of_tiny_gets_a_finite_nonzero_gradient() {
             }
         }
     }
+    offenders
+}
+
+#[test]
+fn every_parameter_of_tiny_gets_a_finite_nonzero_gradient() {
+    let (vm, model) = build_trainable(&Config::tiny(), 21, &Device::Cpu).unwrap();
+    let mut rng = Rng::new(99);
+    let data = vm.data().lock().unwrap();
+    let w = &data["modulation.conv.weight"];
+    w.set(&rand_tensor(&mut rng, w.dims(), -0.05, 0.05)).unwrap();
+    let src = rand_tensor(&mut rng, &[2, 3, 32, 48], 0.2, 0.8);
+    let ct = rand_tensor(&mut rng, &[2, 9, 32, 48], 0.0, 1.5);
+    let target = rand_tensor(&mut rng, &[2, 3, 32, 48], 0.0, 1.0);
+    let out = model.forward(&src, &ct).unwrap();
+    let loss = (out - target).unwrap().abs().unwrap().mean_all().unwrap();
+    let grads = loss.backward().unwrap();
+    let offenders = gradient_offenders(&data, &grads);
     assert!(
         offenders.is_empty(),
         "{} offenders:\n{}",
@@ -320,15 +329,6 @@ fn patch_8_gives_gradients_everywhere() {
         .mean_all()
         .unwrap();
     let grads = loss.backward().unwrap();
-    let missing: Vec<&String> = data
-        .keys()
-        .filter(|n| match grads.get(data[*n].as_tensor()) {
-            None => true,
-            Some(g) => {
-                let v = to_vec(g);
-                v.iter().any(|x| !x.is_finite()) || v.iter().all(|x| *x == 0.0)
-            }
-        })
-        .collect();
-    assert!(missing.is_empty(), "{missing:?}");
+    let offenders = gradient_offenders(&data, &grads);
+    assert!(offenders.is_empty(), "{offenders:?}");
 }
