@@ -1,9 +1,9 @@
 //! The coarse scene of the paper's inference (§3.4), built from a render of the *source*: its
 //! `Depth` pass becomes a triangle mesh in world space (through the camera; cut at depth
 //! discontinuities by [`MeshOptions`]' defaults; reaching the frame's edges) and its `DiffCol`
-//! pass the albedo texture — the stand-ins for a monocular depth and albedo estimator. One caller-given material (the
-//! "estimated" roughness, specular, metallic) covers the whole mesh; the world is kept, lights
-//! are left to the caller. (`DiffCol` is the diffuse closure's albedo, which Cycles' Principled
+//! pass the albedo texture — the stand-ins for a monocular depth and albedo estimator. One
+//! caller-given material (the "estimated" roughness, specular, metallic) covers the whole mesh;
+//! the world is kept, lights are left to the caller. (`DiffCol` is the diffuse closure's albedo, which Cycles' Principled
 //! v2 attenuates by the specular coat's reflectance; a template with a specular coat attenuates
 //! it once more.)
 //!

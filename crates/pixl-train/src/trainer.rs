@@ -67,9 +67,9 @@ fn init_from(path: &Path, cfg: &Config, varmap: &VarMap) -> Result<()> {
             path: path.to_owned(),
             reason: format!(
                 "[model] init_weights holds a different model config than this run's preset \
-                 (stored width d = {}, trunk depth {}; this run d = {}, trunk depth {}): set [model] preset to \
-                 the checkpoint's config",
-                stored.dim, stored.trunk.depth, cfg.dim, cfg.trunk.depth
+                 (stored width d = {}, trunk depth {}, patch {}; this run d = {}, trunk depth {}, patch {}): \
+                 set [model] preset to the checkpoint's config",
+                stored.dim, stored.trunk.depth, stored.patch, cfg.dim, cfg.trunk.depth, cfg.patch
             ),
         });
     }

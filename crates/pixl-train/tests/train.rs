@@ -177,6 +177,17 @@ fn init_weights_starts_from_a_checkpoint() {
         e.contains("init_weights") && e.contains("different model config"),
         "{e}"
     );
+
+    // Differing in the patch size alone: the message shows both sizes.
+    let mut p8 = pixl_model::Config::tiny();
+    p8.patch = 8;
+    let (varmap, _) = pixl_model::build_trainable(&p8, 0, &dev).unwrap();
+    let p8_path = dir.path().join("p8.safetensors");
+    pixl_model::save(&p8_path, &varmap, &p8).unwrap();
+    let mut cfg = small_config(&data, &dir.path().join("e"));
+    cfg.model.init_weights = Some(p8_path);
+    let e = Trainer::new(cfg, &dev).err().unwrap().to_string();
+    assert!(e.contains("patch 8") && e.contains("patch 16"), "{e}");
 }
 
 #[test]
