@@ -12,6 +12,7 @@
 //! [data.sampler]
 //! long_side = 512
 //! coarse_ct = 0.0                # P(condition on `pixl synth --coarse`'s C_T of the pair), 0 = paper
+//! coarse_pair_share = 0.0        # P(draw among the pairs that have one, and use it), 0 = paper
 //! [optim]
 //! batch_size = 4
 //! accumulate = 1                 # micro-batches per step (effective batch = batch_size × accumulate)

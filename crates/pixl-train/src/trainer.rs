@@ -117,6 +117,13 @@ impl Trainer {
         }
         let opt = AdamW::new(vars_of(&varmap)?, cfg.optim.adamw.clone())?;
         let sampler = Sampler::new(scenes, cfg.data.sampler.clone(), cfg.optim.batch_size, cfg.run.seed)?;
+        let (coarse, pairs) = sampler.coarse_pairs();
+        if coarse > 0 {
+            tracing::info!(
+                "coarse C_T exists for {coarse} of {pairs} ordered pairs: about {:.1} % of samples are conditioned on one",
+                100.0 * sampler.coarse_fraction()
+            );
+        }
         let perceptual = match (&cfg.loss.vgg, cfg.loss.perceptual_weight > 0.0) {
             (Some(p), true) => Some(Perceptual::load(p, device)?),
             _ => None,

@@ -386,12 +386,10 @@ impl Loader for MarkLoader {
     }
 }
 
-/// `coarse_ct = 1` conditions on `pixl synth --coarse`'s C_T exactly for the pairs that have one
-/// (here only l0 → l1) and changes nothing else of a sample; `coarse_ct = 0` never does.
-#[test]
-fn coarse_ct_is_used_where_it_exists_and_keeps_the_random_stream() {
-    let dir = tempfile::tempdir().unwrap();
-    let scene_dir = dir.path().join("s0");
+/// One scene `s0` of three images `l0..l2` under `root`, where only the pair l0 -> l1 has a
+/// coarse C_T (a marker file: [`MarkLoader`] never reads it).
+fn scene_with_one_coarse_pair(root: &std::path::Path) -> (std::path::PathBuf, Vec<SceneEntry>) {
+    let scene_dir = root.join("s0");
     std::fs::create_dir_all(&scene_dir).unwrap();
     std::fs::write(scene_dir.join("l1.from_l0.intrinsics.exr"), b"marker").unwrap();
     let scenes = vec![SceneEntry {
@@ -403,6 +401,15 @@ fn coarse_ct_is_used_where_it_exists_and_keeps_the_random_stream() {
             })
             .collect(),
     }];
+    (scene_dir, scenes)
+}
+
+/// `coarse_ct = 1` conditions on `pixl synth --coarse`'s C_T exactly for the pairs that have one
+/// (here only l0 → l1) and changes nothing else of a sample; `coarse_ct = 0` never does.
+#[test]
+fn coarse_ct_is_used_where_it_exists_and_keeps_the_random_stream() {
+    let dir = tempfile::tempdir().unwrap();
+    let (scene_dir, scenes) = scene_with_one_coarse_pair(dir.path());
     let cfg = |p: f32| SamplerConfig {
         long_side: 16,
         multiple: 4,
@@ -410,7 +417,10 @@ fn coarse_ct_is_used_where_it_exists_and_keeps_the_random_stream() {
         ..Default::default()
     };
     let plain = Sampler::new(scenes.clone(), cfg(0.0), 4, 5).unwrap();
-    let coarse = Sampler::new(scenes, cfg(1.0), 4, 5).unwrap();
+    let coarse = Sampler::new(scenes.clone(), cfg(1.0), 4, 5).unwrap();
+    // 3 images: 6 ordered pairs, one of which (l0 -> l1) has a coarse C_T.
+    assert_eq!(coarse.coarse_pairs(), (1, 6));
+    assert_eq!(plain.coarse_pairs(), (0, 0));
     let mut used = 0;
     for step in 0..10 {
         for (a, b) in plain
@@ -435,4 +445,56 @@ fn coarse_ct_is_used_where_it_exists_and_keeps_the_random_stream() {
     }
     assert!(used > 0, "pair l0 -> l1 never drawn: the test proves nothing");
     assert!(cfg(1.5).validate().is_err());
+    // Asking for coarse C_T on a set that has none would silently train on exact C_T only.
+    std::fs::remove_file(scene_dir.join("l1.from_l0.intrinsics.exr")).unwrap();
+    let err = Sampler::new(scenes.clone(), cfg(0.5), 4, 5).err().expect("no coarse file: must refuse");
+    assert!(err.to_string().contains("pixl synth --coarse"), "{err}");
+    assert!(Sampler::new(scenes, cfg(0.0), 4, 5).is_ok());
+}
+
+/// `coarse_pair_share = p` makes a fraction p of the samples the pair with a coarse C_T (l0 -> l1
+/// here), conditioned on it, keeps every other draw of the sample (crop, flip) and, for the
+/// other samples, the pair too; the measured fraction matches [`Sampler::coarse_fraction`],
+/// checked against the closed form by hand.
+#[test]
+fn coarse_pair_share_draws_the_pairs_that_have_a_coarse_ct() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, scenes) = scene_with_one_coarse_pair(dir.path());
+    let cfg = |ct: f32, share: f32| SamplerConfig {
+        long_side: 16,
+        multiple: 4,
+        coarse_ct: ct,
+        coarse_pair_share: share,
+        ..Default::default()
+    };
+    let plain = Sampler::new(scenes.clone(), cfg(0.0, 0.0), 4, 5).unwrap();
+    let all = Sampler::new(scenes.clone(), cfg(0.0, 1.0), 4, 5).unwrap();
+    let half = Sampler::new(scenes.clone(), cfg(0.5, 0.5), 4, 5).unwrap();
+    // By hand: 1 of 6 pairs has a coarse C_T. share 1 -> 1; share 0.5, ct 0.5 -> 0.5 + 0.5 * 0.5 / 6.
+    assert!((all.coarse_fraction() - 1.0).abs() < 1e-12);
+    let want = 0.5 + 0.5 * 0.5 / 6.0;
+    assert!((half.coarse_fraction() - want).abs() < 1e-12, "{}", half.coarse_fraction());
+    assert_eq!(plain.coarse_fraction(), 0.0);
+    let (mut n, mut coarse_half) = (0usize, 0usize);
+    for step in 0..250 {
+        let p = plain.batch(step, &MarkLoader).unwrap();
+        let a = all.batch(step, &MarkLoader).unwrap();
+        let h = half.batch(step, &MarkLoader).unwrap();
+        for ((p, a), h) in p.iter().zip(&a).zip(&h) {
+            assert_eq!((a.source_index, a.target_index), (0, 1));
+            // (The marker value passes through the crop's resampling: equal up to rounding.)
+            assert!((a.ct.data[0] - 51.0).abs() < 1e-3, "share 1 did not condition on the coarse C_T");
+            assert_eq!((a.crop, a.flipped), (p.crop, p.flipped), "other draws changed");
+            let is_coarse = h.ct.data[0] >= 50.0;
+            if !is_coarse {
+                assert_eq!((h.source_index, h.target_index, h.crop), (p.source_index, p.target_index, p.crop));
+            }
+            coarse_half += is_coarse as usize;
+            n += 1;
+        }
+    }
+    // 1000 samples: the binomial standard deviation is ~0.016; allow 4 of them.
+    let frac = coarse_half as f64 / n as f64;
+    assert!((frac - want).abs() < 0.064, "measured {frac}, expected {want}");
+    assert!(cfg(0.0, -0.1).validate().is_err());
 }

@@ -22,6 +22,7 @@ use std::sync::Mutex;
 const STREAM_EPOCH: u64 = 0xE90C;
 const STREAM_STEP: u64 = 0x57E9;
 const STREAM_SAMPLE: u64 = 0x5A3E;
+const STREAM_COARSE: u64 = 0xC0A5;
 
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -43,6 +44,11 @@ pub struct SamplerConfig {
     /// setting, a simulation the paper's recipe approximates with App. C's corruptions.
     /// 0 (default) = the paper's recipe.
     pub coarse_ct: f32,
+    /// Probability that a sample is instead drawn among its scene's pairs that *have* a coarse
+    /// C_T and conditioned on it (`coarse_ct` alone reaches only the few pairs `pixl synth
+    /// --coarse` writes, one per lighting). Drawn from its own random stream, so 0 (default)
+    /// leaves every other draw as it was.
+    pub coarse_pair_share: f32,
 }
 
 impl Default for SamplerConfig {
@@ -55,6 +61,7 @@ impl Default for SamplerConfig {
             multiple: 16,
             flip: true,
             coarse_ct: 0.0,
+            coarse_pair_share: 0.0,
         }
     }
 }
@@ -79,6 +86,12 @@ impl SamplerConfig {
         }
         if !(0.0..=1.0).contains(&self.coarse_ct) {
             return bad(format!("coarse_ct {} must be a probability in [0, 1]", self.coarse_ct));
+        }
+        if !(0.0..=1.0).contains(&self.coarse_pair_share) {
+            return bad(format!(
+                "coarse_pair_share {} must be a probability in [0, 1]",
+                self.coarse_pair_share
+            ));
         }
         Ok(())
     }
@@ -170,6 +183,29 @@ pub struct Sampler {
     cfg: SamplerConfig,
     seed: u64,
     batch_size: usize,
+    /// Per scene, the ordered pairs `(source, target)` that have a coarse C_T file (only
+    /// looked up when `coarse_ct` or `coarse_pair_share` is above 0), and all pairs counted.
+    coarse: Vec<Vec<(usize, usize)>>,
+    pairs: usize,
+}
+
+/// Per scene, the ordered pairs with a coarse C_T file; and the number of all ordered pairs.
+fn find_coarse_pairs(scenes: &[SceneEntry]) -> (Vec<Vec<(usize, usize)>>, usize) {
+    let mut all = 0;
+    let found = scenes
+        .iter()
+        .map(|s| {
+            let n = s.images.len();
+            all += n * (n - 1);
+            (0..n)
+                .flat_map(|i| (0..n).map(move |j| (i, j)))
+                .filter(|&(i, j)| {
+                    i != j && crate::synth::coarse_ct_path(&s.images[i].image, &s.images[j].image).is_file()
+                })
+                .collect()
+        })
+        .collect();
+    (found, all)
 }
 
 impl Sampler {
@@ -188,12 +224,54 @@ impl Sampler {
         if scenes.is_empty() {
             return Err(TrainError::Config("the sampler needs at least one scene".into()));
         }
+        let wants_coarse = cfg.coarse_ct > 0.0 || cfg.coarse_pair_share > 0.0;
+        let (coarse, pairs) = if wants_coarse {
+            find_coarse_pairs(&scenes)
+        } else {
+            (vec![Vec::new(); scenes.len()], 0)
+        };
+        if wants_coarse && coarse.iter().all(Vec::is_empty) {
+            return Err(TrainError::Config(format!(
+                "[data.sampler] coarse_ct = {} / coarse_pair_share = {} but no pair of this data set has a \
+                 coarse-reconstruction C_T (`pixl synth --coarse` writes them, as \
+                 <target>.from_<source>.intrinsics.exr); regenerate the set with --coarse or set both to 0",
+                cfg.coarse_ct, cfg.coarse_pair_share
+            )));
+        }
         Ok(Self {
             scenes,
             cfg,
             seed,
             batch_size,
+            coarse,
+            pairs,
         })
+    }
+
+    /// With `coarse_ct` or `coarse_pair_share` above 0: how many ordered pairs `(source,
+    /// target)` have a coarse C_T, out of how many pairs there are (`(0, 0)` otherwise: not
+    /// looked up).
+    pub fn coarse_pairs(&self) -> (usize, usize) {
+        (self.coarse.iter().map(Vec::len).sum(), self.pairs)
+    }
+
+    /// The expected fraction of samples conditioned on a coarse C_T (scenes are visited
+    /// uniformly): in a scene with `c` of its `n (n − 1)` pairs having one (`c > 0`), a sample
+    /// takes one of them with probability `coarse_pair_share`, else draws any pair, which has one
+    /// with probability `c / (n (n − 1))` and then uses it with probability `coarse_ct`.
+    pub fn coarse_fraction(&self) -> f64 {
+        let (ct, share) = (self.cfg.coarse_ct as f64, self.cfg.coarse_pair_share as f64);
+        let sum: f64 = self
+            .scenes
+            .iter()
+            .zip(&self.coarse)
+            .filter(|(_, c)| !c.is_empty())
+            .map(|(s, c)| {
+                let n = s.images.len();
+                share + (1.0 - share) * ct * c.len() as f64 / (n * (n - 1)) as f64
+            })
+            .sum();
+        sum / self.scenes.len() as f64
     }
 
     pub fn scenes(&self) -> &[SceneEntry] {
@@ -232,13 +310,25 @@ impl Sampler {
 
     /// Sample `index` of `step`.
     pub fn sample(&self, step: u64, index: usize, loader: &dyn Loader) -> Result<Sample> {
-        let scene = &self.scenes[self.scene_of(step, index)];
+        let scene_index = self.scene_of(step, index);
+        let scene = &self.scenes[scene_index];
         let mut rng = Rng::for_stream(self.seed, &[STREAM_SAMPLE, step, index as u64]);
         let n = scene.images.len();
-        let source_index = rng.below(n);
+        let mut source_index = rng.below(n);
         let mut target_index = rng.below(n - 1);
         if target_index >= source_index {
             target_index += 1;
+        }
+        // A pair with a coarse C_T instead, from its own stream (the main one is unchanged).
+        let coarse_pairs = &self.coarse[scene_index];
+        let forced = (self.cfg.coarse_pair_share > 0.0 && !coarse_pairs.is_empty())
+            .then(|| {
+                let mut r = Rng::for_stream(self.seed, &[STREAM_COARSE, step, index as u64]);
+                (r.f32() < self.cfg.coarse_pair_share).then(|| coarse_pairs[r.below(coarse_pairs.len())])
+            })
+            .flatten();
+        if let Some((s, t)) = forced {
+            (source_index, target_index) = (s, t);
         }
         let (src_e, tgt_e) = (&scene.images[source_index], &scene.images[target_index]);
         let source = loader.image(src_e)?;
@@ -253,7 +343,8 @@ impl Sampler {
         );
         let flipped = self.cfg.flip && rng.bernoulli(0.5);
         // Drawn last and only when enabled: the paper's recipe keeps its random stream.
-        let coarse = (self.cfg.coarse_ct > 0.0 && rng.f32() < self.cfg.coarse_ct)
+        let by_ct = self.cfg.coarse_ct > 0.0 && rng.f32() < self.cfg.coarse_ct;
+        let coarse = (forced.is_some() || by_ct)
             .then(|| crate::synth::coarse_ct_path(&src_e.image, &tgt_e.image))
             .filter(|p| p.is_file());
         let ct = match coarse {
