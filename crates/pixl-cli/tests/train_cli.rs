@@ -203,3 +203,52 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
         "{err}"
     );
 }
+
+/// `--coarse-albedo photo` textures each reconstruction with its source image itself (as `pixl
+/// reconstruct` does without `--albedo`) and records that in the manifest; the option needs
+/// `--coarse`.
+#[test]
+fn synth_coarse_albedo_photo_textures_with_the_source_image() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("synth");
+    let o = dir.path().display().to_string();
+    let base = [
+        "-q",
+        "synth",
+        "--scenes",
+        "1",
+        "--lights",
+        "2",
+        "--size",
+        "24",
+        "--spp",
+        "2",
+        "--coarse-albedo",
+        "photo",
+    ];
+    let refused = pixl(&[&base[..], &["-o", &o]].concat());
+    assert!(
+        !refused.status.success(),
+        "--coarse-albedo without --coarse was accepted"
+    );
+    let ok = pixl(&[&base[..], &["--coarse", "-o", out.to_str().unwrap()]].concat());
+    assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
+    for k in 0..2 {
+        let photo = pixl_core::io::read_rgb(&out.join(format!("scene0000/light_{k}.png"))).unwrap();
+        let tex = pixl_core::io::read_rgb(&out.join(format!("scene0000/coarse_from_light_{k}/albedo.png"))).unwrap();
+        assert_eq!((photo.width, photo.height), (tex.width, tex.height));
+        // The image PNG is 8-bit, the texture 16-bit of the same values: within half an 8-bit step.
+        let worst = photo
+            .data
+            .iter()
+            .zip(&tex.data)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        assert!(
+            worst <= 0.5 / 255.0 + 1e-4,
+            "light_{k}: texture differs from the photo by {worst}"
+        );
+    }
+    let manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("scenes.json")).unwrap()).unwrap();
+    assert_eq!(manifest["coarse_albedo"], "photo");
+}

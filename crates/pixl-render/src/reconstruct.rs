@@ -7,6 +7,10 @@
 //! v2 attenuates by the specular coat's reflectance; a template with a specular coat attenuates
 //! it once more.)
 //!
+//! [`coarse_scene_textured`] takes the albedo texture from the caller instead — e.g. the photo
+//! itself, as `pixl reconstruct` does when no albedo map is given: the shading and shadows of the
+//! source then sit in the "albedo", as they do with a weak albedo estimator.
+//!
 //! Used by `pixl demo` and by `pixl synth --coarse`, which evaluates the network in this setting.
 use crate::depth::{depth_to_mesh, DepthMap, Intrinsics, MeshOptions};
 use crate::error::{RenderError, Result};
@@ -28,9 +32,35 @@ pub fn estimated_material() -> Material {
 /// that mesh with `material` whose base colour is replaced by the albedo texture, no lights,
 /// files resolving against `dir`. Also saved as `dir/scene.toml`.
 pub fn coarse_scene(source: &Film, scene: &Scene, material: &Material, dir: &Path) -> Result<Scene> {
+    coarse_scene_textured(source, scene, material, None, dir)
+}
+
+/// [`coarse_scene`] with `texture` (sRGB in [0, 1], 3 channels, the render's size) as the albedo
+/// texture instead of the `DiffCol` pass when given.
+pub fn coarse_scene_textured(
+    source: &Film,
+    scene: &Scene,
+    material: &Material,
+    texture: Option<&pixl_core::Image>,
+    dir: &Path,
+) -> Result<Scene> {
     let missing = |pass: &str| RenderError::Options(format!("the source render has no {pass} pass"));
     let depth = source.pass_ref("Depth").ok_or_else(|| missing("Depth"))?;
-    let albedo = source.pass_ref("DiffCol").ok_or_else(|| missing("DiffCol"))?;
+    let texture = match texture {
+        Some(t) => {
+            if (t.width, t.height, t.channels) != (depth.width, depth.height, 3) {
+                return Err(RenderError::Options(format!(
+                    "albedo texture is {}x{}x{}, the render {}x{}x3",
+                    t.width, t.height, t.channels, depth.width, depth.height
+                )));
+            }
+            t.map(|v| v.clamp(0.0, 1.0))
+        }
+        None => {
+            let albedo = source.pass_ref("DiffCol").ok_or_else(|| missing("DiffCol"))?;
+            albedo.map(|v| pixl_core::image::linear_to_srgb(v.clamp(0.0, 1.0)))
+        }
+    };
     std::fs::create_dir_all(dir).map_err(|e| RenderError::Write {
         path: dir.to_owned(),
         message: e.to_string(),
@@ -49,7 +79,6 @@ pub fn coarse_scene(source: &Film, scene: &Scene, material: &Material, dir: &Pat
         path: mesh_path.clone(),
         message: e.to_string(),
     })?;
-    let texture = albedo.map(|v| pixl_core::image::linear_to_srgb(v.clamp(0.0, 1.0)));
     pixl_core::io::write_png(&dir.join("albedo.png"), &texture, pixl_core::io::PngDepth::Sixteen)?;
     let (o, r, u, b) = scene.camera.frame();
     let cam_to_world = [
@@ -144,5 +173,18 @@ mod tests {
             assert!(a > 0.01 && b.is_finite(), "{pass}: {a} {b}");
             assert!((a - b).abs() / a < 0.01, "{pass}: source {a} vs coarse {b}");
         }
+        // A caller-given texture replaces DiffCol: a uniform sRGB 0.5 "photo" gives the coarse
+        // scene a diffuse colour of srgb_to_linear(0.5) = 0.2140 (the material has no specular
+        // coat, so DiffCol is the base colour itself).
+        let photo = pixl_core::Image::new(32, 24, 3).map(|_| 0.5);
+        let mut textured = coarse_scene_textured(&source, &scene, &estimated, Some(&photo), dir.path()).unwrap();
+        textured.lights = scene.lights.clone();
+        let film = render(&textured, &opts, &|_, _| {}).unwrap();
+        let d = &film.pass_ref("DiffCol").unwrap().data;
+        let mean = d.iter().map(|v| *v as f64).sum::<f64>() / d.len() as f64;
+        let want = ((0.5f64 + 0.055) / 1.055).powf(2.4);
+        assert!((mean - want).abs() / want < 0.01, "DiffCol {mean} vs {want}");
+        let wrong = pixl_core::Image::new(16, 24, 3);
+        assert!(coarse_scene_textured(&source, &scene, &estimated, Some(&wrong), dir.path()).is_err());
     }
 }

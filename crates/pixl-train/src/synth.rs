@@ -19,7 +19,9 @@
 //! and composed — `light_<j>.from_light_<i>.intrinsics.exr` ([`coarse_ct_path`]), beside that
 //! render shown like the images (`….path_traced.png`). `pixl eval --ct coarse` reads those of
 //! the test scenes; training can condition on those of the train scenes
-//! (`[data.sampler] coarse_ct`).
+//! (`[data.sampler] coarse_ct`, `coarse_pair_share`). With `coarse_albedo = photo` the
+//! reconstruction is textured with image `i` itself instead of its DiffCol pass (what `pixl
+//! reconstruct` does without an albedo map): the setting of a user with no albedo estimator.
 //!
 //! Everything is a pure function of `(seed, scene index, lighting index)`: same seed, same set.
 use crate::data::folder::{SynthImageRecord, SynthManifest, SynthSceneRecord, MANIFEST};
@@ -44,6 +46,20 @@ pub struct SynthOptions {
     pub test_every: usize,
     /// Also write the coarse-reconstruction C_T of every pair `i → i+1` (see the module docs).
     pub coarse: bool,
+    /// The coarse reconstruction's albedo texture.
+    pub coarse_albedo: CoarseAlbedo,
+}
+
+/// Where the coarse reconstruction of `pixl synth --coarse` takes its albedo texture from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CoarseAlbedo {
+    /// The source render's `DiffCol` pass: a perfect albedo estimator.
+    #[default]
+    Diffcol,
+    /// The source image itself (`pixl reconstruct` without `--albedo`): no estimator, the source's
+    /// shading and shadows stay in the texture.
+    Photo,
 }
 
 impl Default for SynthOptions {
@@ -57,6 +73,7 @@ impl Default for SynthOptions {
             seed: 0,
             test_every: 10,
             coarse: false,
+            coarse_albedo: CoarseAlbedo::Diffcol,
         }
     }
 }
@@ -357,10 +374,15 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
         for (k, (source_scene, source_film)) in lit.iter().enumerate() {
             let j = (k + 1) % opts.lights;
             let recon_dir = dir.join(format!("coarse_from_light_{k}"));
-            let mut relit = pixl_render::reconstruct::coarse_scene(
+            let photo = match opts.coarse_albedo {
+                CoarseAlbedo::Diffcol => None,
+                CoarseAlbedo::Photo => Some(source_film.combined_srgb()),
+            };
+            let mut relit = pixl_render::reconstruct::coarse_scene_textured(
                 source_film,
                 source_scene,
                 &pixl_render::reconstruct::estimated_material(),
+                photo.as_ref(),
                 &recon_dir,
             )
             .map_err(|e| TrainError::Other(format!("coarse reconstruction of {name}/light_{k}: {e}")))?;
@@ -391,6 +413,7 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
         seed: opts.seed,
         size: opts.size as usize,
         spp: opts.spp,
+        coarse_albedo: opts.coarse.then_some(opts.coarse_albedo),
         scenes: records,
     };
     let json = serde_json::to_string_pretty(&manifest).map_err(|e| TrainError::Other(e.to_string()))?;

@@ -447,7 +447,9 @@ fn coarse_ct_is_used_where_it_exists_and_keeps_the_random_stream() {
     assert!(cfg(1.5).validate().is_err());
     // Asking for coarse C_T on a set that has none would silently train on exact C_T only.
     std::fs::remove_file(scene_dir.join("l1.from_l0.intrinsics.exr")).unwrap();
-    let err = Sampler::new(scenes.clone(), cfg(0.5), 4, 5).err().expect("no coarse file: must refuse");
+    let err = Sampler::new(scenes.clone(), cfg(0.5), 4, 5)
+        .err()
+        .expect("no coarse file: must refuse");
     assert!(err.to_string().contains("pixl synth --coarse"), "{err}");
     assert!(Sampler::new(scenes, cfg(0.0), 4, 5).is_ok());
 }
@@ -473,7 +475,11 @@ fn coarse_pair_share_draws_the_pairs_that_have_a_coarse_ct() {
     // By hand: 1 of 6 pairs has a coarse C_T. share 1 -> 1; share 0.5, ct 0.5 -> 0.5 + 0.5 * 0.5 / 6.
     assert!((all.coarse_fraction() - 1.0).abs() < 1e-12);
     let want = 0.5 + 0.5 * 0.5 / 6.0;
-    assert!((half.coarse_fraction() - want).abs() < 1e-12, "{}", half.coarse_fraction());
+    assert!(
+        (half.coarse_fraction() - want).abs() < 1e-12,
+        "{}",
+        half.coarse_fraction()
+    );
     assert_eq!(plain.coarse_fraction(), 0.0);
     let (mut n, mut coarse_half) = (0usize, 0usize);
     for step in 0..250 {
@@ -483,11 +489,17 @@ fn coarse_pair_share_draws_the_pairs_that_have_a_coarse_ct() {
         for ((p, a), h) in p.iter().zip(&a).zip(&h) {
             assert_eq!((a.source_index, a.target_index), (0, 1));
             // (The marker value passes through the crop's resampling: equal up to rounding.)
-            assert!((a.ct.data[0] - 51.0).abs() < 1e-3, "share 1 did not condition on the coarse C_T");
+            assert!(
+                (a.ct.data[0] - 51.0).abs() < 1e-3,
+                "share 1 did not condition on the coarse C_T"
+            );
             assert_eq!((a.crop, a.flipped), (p.crop, p.flipped), "other draws changed");
             let is_coarse = h.ct.data[0] >= 50.0;
             if !is_coarse {
-                assert_eq!((h.source_index, h.target_index, h.crop), (p.source_index, p.target_index, p.crop));
+                assert_eq!(
+                    (h.source_index, h.target_index, h.crop),
+                    (p.source_index, p.target_index, p.crop)
+                );
             }
             coarse_half += is_coarse as usize;
             n += 1;

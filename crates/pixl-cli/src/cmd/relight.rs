@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 #[derive(clap::Args, Debug)]
 #[command(
     after_help = "Example:\n  pixl relight --source photo.png --intrinsics ct.exr --weights model.safetensors --out relit.png\n\n\
-The network pads to a multiple of 16 internally; any size and aspect ratio works."
+The network pads to a multiple of its patch size internally; any size and aspect ratio works."
 )]
 pub struct Args {
     /// Source photograph I_S (.png, .jpg or .exr; RGB, values in [0, 1]).

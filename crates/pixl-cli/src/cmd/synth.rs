@@ -32,6 +32,11 @@ pub struct Args {
     /// `pixl eval --ct coarse` and by training with `[data.sampler] coarse_ct`). Doubles the time.
     #[arg(long)]
     pub coarse: bool,
+    /// With --coarse: the reconstruction's albedo texture — `diffcol` (the source render's
+    /// diffuse colour pass: a perfect albedo estimator) or `photo` (the source image itself, as
+    /// `pixl reconstruct` does without --albedo: no estimator, source shading stays in it).
+    #[arg(long, value_enum, default_value_t = CoarseAlbedoArg::Diffcol, requires = "coarse")]
+    pub coarse_albedo: CoarseAlbedoArg,
     /// Output directory.
     #[arg(short, long)]
     pub out: PathBuf,
@@ -47,6 +52,10 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         seed: args.seed,
         test_every: args.test_every,
         coarse: args.coarse,
+        coarse_albedo: match args.coarse_albedo {
+            CoarseAlbedoArg::Diffcol => pixl_train::synth::CoarseAlbedo::Diffcol,
+            CoarseAlbedoArg::Photo => pixl_train::synth::CoarseAlbedo::Photo,
+        },
     };
     let pb = ctx.progress((args.scenes * args.lights) as u64, "synth");
     let t0 = std::time::Instant::now();
@@ -69,4 +78,11 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         t0.elapsed().as_secs_f64()
     ));
     Ok(())
+}
+
+/// `--coarse-albedo` values (see [`pixl_train::synth::CoarseAlbedo`]).
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CoarseAlbedoArg {
+    Diffcol,
+    Photo,
 }

@@ -87,9 +87,6 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         }
     }
     pixl_core::io::atomic_write_bytes(&saved, text.as_bytes())?;
-    if cfg.loss.perceptual_weight == 0.0 {
-        ctx.say("perceptual weight 0: training with the L1 loss only");
-    }
     let pb = ctx.progress(cfg.run.steps, "train");
     pb.set_position(trainer.step);
     let t0 = std::time::Instant::now();

@@ -54,6 +54,9 @@ pub struct SynthManifest {
     pub seed: u64,
     pub size: usize,
     pub spp: u32,
+    /// With `pixl synth --coarse`: where the coarse reconstruction's albedo came from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coarse_albedo: Option<crate::synth::CoarseAlbedo>,
     pub scenes: Vec<SynthSceneRecord>,
 }
 
