@@ -502,3 +502,26 @@ fn good_input_succeeds_and_round_trips() {
     let b = pixl_core::io::read_rgb(&out).unwrap();
     assert_eq!(a, b);
 }
+
+/// `relight --device`: an unknown device and (in a build without the `cuda` feature) CUDA are
+/// refused with a message saying so, before anything is written.
+#[test]
+fn relight_on_an_unavailable_device() {
+    let f = Fixture::new();
+    let (src, ct, w, out) = (f.source(), f.ct("ct.exr", W, H), f.weights(), f.path("out.png"));
+    let mut args = relight_args(s(&src), s(&ct), s(&w), s(&out));
+    args.extend(["--device", "tpu"]);
+    expect_failure(&args, &["--device", "expected cpu or cuda"], &out);
+    #[cfg(not(feature = "cuda"))]
+    {
+        let mut args = relight_args(s(&src), s(&ct), s(&w), s(&out));
+        args.extend(["--device", "cuda:0"]);
+        expect_failure(&args, &["CUDA is not available"], &out);
+    }
+    // The same arguments on the CPU work (the failures above are the device's alone).
+    let mut args = relight_args(s(&src), s(&ct), s(&w), s(&out));
+    args.extend(["--device", "cpu"]);
+    let o = pixl(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.is_file());
+}

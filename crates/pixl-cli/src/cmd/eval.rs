@@ -66,7 +66,8 @@ pub struct Args {
     pub runs: usize,
 }
 
-fn parse_device(s: &str) -> anyhow::Result<Device> {
+/// `cpu` or `cuda[:N]` (N defaults to 0); CUDA only in a build with `--features cuda`.
+pub(crate) fn parse_device(s: &str) -> anyhow::Result<Device> {
     match s {
         "cpu" => Ok(Device::Cpu),
         _ if s.starts_with("cuda") => {

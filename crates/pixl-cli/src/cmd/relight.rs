@@ -32,6 +32,9 @@ pub struct Args {
     /// Compute dtype of the network.
     #[arg(long, value_enum, default_value_t = super::bench::DtypeArg::F32)]
     pub dtype: super::bench::DtypeArg,
+    /// Device for the network: cpu, or cuda[:N] (needs a build with `--features cuda`).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
 }
 
 pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
@@ -52,7 +55,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             ct.height()
         );
     }
-    let device = Device::Cpu;
+    let device = super::eval::parse_device(&args.device)?;
     let (cfg, model) = pixl_model::load(&args.weights, &device, args.dtype.into())?;
     tracing::info!("loaded {} ({} parameters)", args.weights.display(), cfg.param_count());
     let src = clamp_to_unit(&src, &args.source);
