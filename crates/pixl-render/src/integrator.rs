@@ -110,16 +110,15 @@ impl Renderer {
     pub fn render(&self, progress: &(dyn Fn(usize, usize) + Sync)) -> Film {
         let (w, h) = (self.width as usize, self.height as usize);
         let done = AtomicUsize::new(0);
-        let rows: Vec<Vec<PixelSum>> = (0..h)
-            .into_par_iter()
-            .map(|y| {
-                let row = (0..w).map(|x| self.render_pixel(x, y)).collect();
-                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-                progress(d, h);
-                row
-            })
-            .collect();
-        let sums: Vec<PixelSum> = rows.into_iter().flatten().collect();
+        // Rows written in place (no per-row vectors to gather and copy afterwards).
+        let mut sums = vec![PixelSum::default(); w * h];
+        sums.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, p) in row.iter_mut().enumerate() {
+                *p = self.render_pixel(x, y);
+            }
+            let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+            progress(d, h);
+        });
         Film::from_sums(w, h, self.opts.spp, &sums)
     }
 
