@@ -9,6 +9,9 @@
 //! cargo run --release -p pixl-render --example compare_cycles -- \
 //!     crates/pixl-render/examples/compare_scene.toml 64 /tmp/cmp/native.exr /tmp/cmp/cycles.exr
 //! ```
+//!
+//! An optional fifth argument sets the native `max_bounces` (default 8, as the exported script's
+//! `--max-bounces`).
 use pixl_core::exrio::{read_exr_channels, ExrChannels};
 use pixl_core::passes;
 use std::path::Path;
@@ -26,14 +29,19 @@ fn channel<'a>(exr: &'a ExrChannels, pass: &passes::Pass, ch: &str) -> Option<&'
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let [scene, spp, native, cycles] = args.as_slice() else {
-        return Err("usage: compare_cycles SCENE.toml SPP NATIVE.exr CYCLES.exr".into());
+    let (scene, spp, native, cycles, bounces) = match args.as_slice() {
+        [a, b, c, d] => (a, b, c, d, None),
+        [a, b, c, d, e] => (a, b, c, d, Some(e.parse::<u32>()?)),
+        _ => return Err("usage: compare_cycles SCENE.toml SPP NATIVE.exr CYCLES.exr [MAX_BOUNCES]".into()),
     };
     let scene = pixl_render::Scene::load(Path::new(scene))?;
-    let opts = pixl_render::integrator::RenderOptions {
+    let mut opts = pixl_render::integrator::RenderOptions {
         spp: spp.parse()?,
         ..Default::default()
     };
+    if let Some(b) = bounces {
+        opts.max_bounces = b;
+    }
     let t = std::time::Instant::now();
     let film = pixl_render::integrator::render(&scene, &opts, &|_, _| {})?;
     let secs = t.elapsed().as_secs_f64();
