@@ -251,4 +251,25 @@ fn synth_coarse_albedo_photo_textures_with_the_source_image() {
     }
     let manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("scenes.json")).unwrap()).unwrap();
     assert_eq!(manifest["coarse_albedo"], "photo");
+    // `pixl eval --ct coarse` says which reconstruction the C_T came from.
+    let report = dir.path().join("eval");
+    let e = pixl(&[
+        "-q",
+        "eval",
+        "--dataset",
+        &format!("synth:{}", out.display()),
+        "--split",
+        "all",
+        "--baselines",
+        "compose",
+        "--runs",
+        "0",
+        "--ct",
+        "coarse",
+        "--out",
+        report.to_str().unwrap(),
+    ]);
+    assert!(e.status.success(), "{}", String::from_utf8_lossy(&e.stderr));
+    let md = std::fs::read_to_string(report.join("results.md")).unwrap();
+    assert!(md.contains("textured with the source image"), "{md}");
 }

@@ -139,7 +139,21 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
 
     let pb = ctx.progress(pairs.len() as u64, "eval");
     let label = if args.ct == "coarse" {
-        format!("{} (C_T from coarse reconstructions)", args.dataset)
+        let albedo = args
+            .dataset
+            .strip_prefix("synth:")
+            .and_then(|root| pixl_train::data::folder::synth_coarse_albedo(std::path::Path::new(root)));
+        match albedo {
+            Some(pixl_train::synth::CoarseAlbedo::Diffcol) => format!(
+                "{} (C_T from coarse reconstructions textured with the source's DiffCol pass)",
+                args.dataset
+            ),
+            Some(pixl_train::synth::CoarseAlbedo::Photo) => format!(
+                "{} (C_T from coarse reconstructions textured with the source image)",
+                args.dataset
+            ),
+            None => format!("{} (C_T from coarse reconstructions)", args.dataset),
+        }
     } else {
         args.dataset.clone()
     };

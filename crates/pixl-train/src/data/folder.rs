@@ -82,6 +82,14 @@ pub struct Synth {
     scenes: Vec<SceneEntry>,
 }
 
+/// Where the coarse reconstructions of the `pixl synth --coarse` set at `root` took their albedo
+/// from, as its manifest records it (`None`: no manifest, an unreadable one, or a set made before
+/// the field existed or without `--coarse`).
+pub fn synth_coarse_albedo(root: &Path) -> Option<crate::synth::CoarseAlbedo> {
+    let text = std::fs::read_to_string(root.join(MANIFEST)).ok()?;
+    serde_json::from_str::<SynthManifest>(&text).ok()?.coarse_albedo
+}
+
 impl Synth {
     pub fn open(root: &Path, split: Split) -> Result<Self> {
         let path = root.join(MANIFEST);
