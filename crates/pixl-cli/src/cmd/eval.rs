@@ -143,17 +143,12 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             .dataset
             .strip_prefix("synth:")
             .and_then(|root| pixl_train::data::folder::synth_coarse_albedo(std::path::Path::new(root)));
-        match albedo {
-            Some(pixl_train::synth::CoarseAlbedo::Diffcol) => format!(
-                "{} (C_T from coarse reconstructions textured with the source's DiffCol pass)",
-                args.dataset
-            ),
-            Some(pixl_train::synth::CoarseAlbedo::Photo) => format!(
-                "{} (C_T from coarse reconstructions textured with the source image)",
-                args.dataset
-            ),
-            None => format!("{} (C_T from coarse reconstructions)", args.dataset),
-        }
+        let texture = match albedo {
+            Some(pixl_train::synth::CoarseAlbedo::Diffcol) => " textured with the source's DiffCol pass",
+            Some(pixl_train::synth::CoarseAlbedo::Photo) => " textured with the source image",
+            None => "",
+        };
+        format!("{} (C_T from coarse reconstructions{texture})", args.dataset)
     } else {
         args.dataset.clone()
     };

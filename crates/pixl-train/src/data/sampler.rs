@@ -343,10 +343,10 @@ impl Sampler {
         );
         let flipped = self.cfg.flip && rng.bernoulli(0.5);
         // Drawn last and only when enabled: the paper's recipe keeps its random stream.
+        // Whether the pair has a coarse C_T was looked up once, in `new` (no file check here).
         let by_ct = self.cfg.coarse_ct > 0.0 && rng.f32() < self.cfg.coarse_ct;
-        let coarse = (forced.is_some() || by_ct)
-            .then(|| crate::synth::coarse_ct_path(&src_e.image, &tgt_e.image))
-            .filter(|p| p.is_file());
+        let coarse = (forced.is_some() || (by_ct && coarse_pairs.contains(&(source_index, target_index))))
+            .then(|| crate::synth::coarse_ct_path(&src_e.image, &tgt_e.image));
         let ct = match coarse {
             Some(path) => loader.intrinsics(&ImageEntry {
                 image: tgt_e.image.clone(),
