@@ -7,6 +7,7 @@
 //! inverse transpose of the object matrix.
 use crate::bvh::{Bvh, Hit, Ray, Tri};
 use crate::error::{RenderError, Result};
+use crate::material::Coat;
 use crate::math::V3;
 use crate::mesh::Mesh;
 use crate::scene::{Scene, Shape};
@@ -39,6 +40,9 @@ pub struct MaterialData {
     pub ior: f32,
     pub specular_level: f32,
     pub emission: V3,
+    /// Constants of the dielectric specular coat: must be `Coat::new(ior, specular_level)`
+    /// ([`resolve_material`] sets it; set it again if you change either field).
+    pub coat: Coat,
 }
 
 pub struct Geometry {
@@ -192,6 +196,7 @@ pub fn resolve_material(scene: &Scene, m: &crate::scene::Material) -> Result<Mat
         ior: m.ior,
         specular_level: m.specular_ior_level,
         emission: V3::from_arr(m.emission_color.rgb()) * m.emission_strength,
+        coat: Coat::new(m.ior, m.specular_ior_level),
     })
 }
 

@@ -124,6 +124,32 @@ pub fn fresnel_dielectric_avg(eta: f32) -> f32 {
     ((eta - 1.0) / (4.08567 + 1.00071 * eta)).clamp(0.0, 1.0)
 }
 
+/// The dielectric specular coat's constants, which depend on the material only: `F0 =
+/// ((ior−1)/(ior+1))² · 2 · specular_ior_level` (at most 0.99), the Fresnel IOR `η` with that
+/// `F0`, the cosine-weighted average Fresnel `F_ss = mix(F0, 1, s_avg)` used by the energy
+/// compensation, and `η`'s place in the `S` table.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Coat {
+    pub f0: f32,
+    pub eta: f32,
+    pub fss: f32,
+    pub eta_cell: ggx_albedo::EtaCell,
+}
+
+impl Coat {
+    pub fn new(ior: f32, specular_level: f32) -> Coat {
+        let f0 = (f0_from_ior(ior.max(1e-5)) * 2.0 * specular_level.max(0.0)).min(0.99);
+        let eta = ior_from_f0(f0);
+        let s_avg = ((fresnel_dielectric_avg(eta) - f0) / (1.0 - f0)).clamp(0.0, 1.0);
+        Coat {
+            f0,
+            eta,
+            fss: f0 + (1.0 - f0) * s_avg,
+            eta_cell: ggx_albedo::EtaCell::new(eta),
+        }
+    }
+}
+
 /// Multiple-scattering compensation factor `1 + F_ms (1 − E)/E` of a GGX lobe whose average
 /// single-scattering Fresnel is `fss` (per channel); `e = E(r, μo)`, `e_avg = Ē(r)`.
 fn ms_factor(e: f32, e_avg: f32, fss: V3) -> V3 {
@@ -199,12 +225,15 @@ impl Bsdf {
         let trans_w = w * trans;
         let w = w * (1.0 - trans);
         // Dielectric specular coat (weight `w`) over the diffuse base.
-        let f0 = (f0_from_ior(m.ior.max(1e-5)) * 2.0 * m.specular_level.max(0.0)).min(0.99);
-        let spec_eta = ior_from_f0(f0);
+        let Coat {
+            f0,
+            eta: spec_eta,
+            fss,
+            eta_cell,
+        } = m.coat;
         let (spec_w, kd, spec_albedo) = if f0 > 0.0 && w > 0.0 {
-            let s_avg = ((fresnel_dielectric_avg(spec_eta) - f0) / (1.0 - f0)).clamp(0.0, 1.0);
-            let k = ms_factor(e, e_avg, V3::splat(f0 + (1.0 - f0) * s_avg));
-            let fresnel = f0 + (1.0 - f0) * tables.s_dielectric(gloss_rough, cos_o, spec_eta);
+            let k = ms_factor(e, e_avg, V3::splat(fss));
+            let fresnel = f0 + (1.0 - f0) * tables.s_dielectric_at(gloss_rough, cos_o, eta_cell);
             // Albedo per unit closure weight; the base gets what the coat does not reflect.
             let a = k * (e * fresnel);
             let below = (1.0 - a.max_comp()).clamp(0.0, 1.0);
@@ -397,6 +426,7 @@ mod tests {
             ior: 1.5,
             specular_level,
             emission: V3::ZERO,
+            coat: Coat::new(1.5, specular_level),
         }
     }
 
@@ -435,6 +465,24 @@ mod tests {
 
     fn view(mu: f32) -> V3 {
         V3::new((1.0 - mu * mu).sqrt(), 0.0, mu)
+    }
+
+    #[test]
+    fn coat_constants_follow_the_principled_definitions() {
+        // By hand for IOR 1.5, level 0.5: F0 = (0.5 / 2.5)² = 0.04, η = (1 + 0.2) / (1 − 0.2)
+        // = 1.5; level 0.25 halves F0. F_ss = F0 + (1 − F0)·s_avg with s_avg from the fit.
+        for (ior, level, f0) in [(1.5f32, 0.5f32, 0.04f64), (1.5, 0.25, 0.02), (1.33, 0.5, 0.0200593)] {
+            let c = Coat::new(ior, level);
+            assert!((c.f0 as f64 - f0).abs() < 1e-6, "F0 {} vs {f0}", c.f0);
+            let s = f0.sqrt();
+            let eta = (1.0 + s) / (1.0 - s);
+            assert!((c.eta as f64 - eta).abs() < 1e-5 * eta, "eta {} vs {eta}", c.eta);
+            let s_avg = ((fresnel_dielectric_avg(c.eta) as f64 - f0) / (1.0 - f0)).clamp(0.0, 1.0);
+            assert!((c.fss as f64 - (f0 + (1.0 - f0) * s_avg)).abs() < 1e-6);
+            assert_eq!(c.eta_cell, ggx_albedo::EtaCell::new(c.eta));
+        }
+        // Level 0: no coat.
+        assert_eq!(Coat::new(1.5, 0.0).f0, 0.0);
     }
 
     #[test]

@@ -183,9 +183,12 @@ impl GgxAlbedo<'_> {
 
     /// `S(r, μ, η)` for a dielectric `η > 1` (interpolated; `η < 1` is read as `1/η`).
     pub fn s_dielectric(&self, rough: f32, mu: f32, eta: f32) -> f32 {
-        let eta = if eta < 1.0 { 1.0 / eta.max(1e-6) } else { eta };
-        let z = ((eta - 1.0) / (eta + 1.0)).max(0.0).sqrt();
-        let (z0, z1, t) = cell(z, NS);
+        self.s_dielectric_at(rough, mu, EtaCell::new(eta))
+    }
+
+    /// [`GgxAlbedo::s_dielectric`] with the `η` slice located beforehand (per material).
+    pub fn s_dielectric_at(&self, rough: f32, mu: f32, eta: EtaCell) -> f32 {
+        let (z0, z1, t) = eta.0;
         let n2 = NS * NS;
         // The (r, μ) cell is shared by both `z` slices: locate it once.
         let (cx, cy) = (cell(rough, NS), cell(mu, NS));
@@ -200,11 +203,26 @@ impl GgxAlbedo<'_> {
     }
 }
 
+/// Where a dielectric's `η` falls in the `S` table's `η` axis (see
+/// [`GgxAlbedo::s_dielectric_at`]); depends on the material only, so it is found once.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EtaCell((usize, usize, f32));
+
+impl EtaCell {
+    /// `η < 1` is read as `1/η`.
+    pub fn new(eta: f32) -> EtaCell {
+        let eta = if eta < 1.0 { 1.0 / eta.max(1e-6) } else { eta };
+        let z = ((eta - 1.0) / (eta + 1.0)).max(0.0).sqrt();
+        EtaCell(cell(z, NS))
+    }
+}
+
 /// The two nodes around `x ∈ [0, 1]` on an `n`-node grid and the weight of the upper one.
 #[inline]
 fn cell(x: f32, n: usize) -> (usize, usize, f32) {
     let f = if x.is_finite() { x.clamp(0.0, 1.0) } else { 0.0 } * (n - 1) as f32;
-    let i0 = (f.floor() as usize).min(n - 2);
+    // `f ≥ 0`, so truncation is the floor (and needs no libm call on baseline x86-64).
+    let i0 = (f as usize).min(n - 2);
     (i0, i0 + 1, f - i0 as f32)
 }
 
