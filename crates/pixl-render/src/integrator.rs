@@ -133,13 +133,16 @@ impl Renderer {
         let mut first = [None; PACKET];
         for s0 in (0..spp).step_by(PACKET) {
             let n = PACKET.min(spp - s0);
-            let mut rngs: [Rng; PACKET] =
-                std::array::from_fn(|j| Rng::for_stream(self.opts.seed, &[pixel, (s0 + j) as u64]));
-            let rays: [Ray; PACKET] = std::array::from_fn(|j| {
+            // Streams and camera rays for the `n` samples of this packet only (a low-spp render
+            // would otherwise pay for all PACKET lanes).
+            let mut rngs: [Rng; PACKET] = std::array::from_fn(|_| Rng::from_state([0; 4]));
+            let mut rays = [Ray::new(V3::ZERO, V3::ZERO); PACKET];
+            for j in 0..n {
                 let rng = &mut rngs[j];
+                *rng = Rng::for_stream(self.opts.seed, &[pixel, (s0 + j) as u64]);
                 let (u, v) = (rng.f32(), rng.f32());
-                self.camera.ray(x as f32 + u, y as f32 + v)
-            });
+                rays[j] = self.camera.ray(x as f32 + u, y as f32 + v);
+            }
             self.geom.intersect_packet(&rays[..n], 0.0, &far[..n], &mut first[..n]);
             for j in 0..n {
                 let sample = self.trace(&rays[j], first[j], &mut rngs[j]);
