@@ -2,8 +2,10 @@
 //! ~500 k-triangle depth-like mesh (a bumpy height field unprojected in front of the camera,
 //! as `pixl reconstruct` makes) lit by one area light and a constant environment.
 //!
-//! `cargo run --release -p pixl-render --example bench_render [-- GRID SPP [render-only]]`
-//! (GRID = vertices per side, default 500 → 498 002 triangles; `render-only` skips the ray
+//! `cargo run --release -p pixl-render --example bench_render [-- GRID SPP [render-only [REPEAT]]]`
+//! (GRID = vertices per side, default 500 → 498 002 triangles; REPEAT renders the image that
+//! many times and also prints the minimum and median wall time — the VM's host adds ±10 % from
+//! run to run; `render-only` skips the ray
 //! timings, e.g. for profiling).
 //!
 //! After the render it also times ray casting alone on the main thread (a load-independent
@@ -84,9 +86,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (t0, c0) = (Instant::now(), process_cpu_s());
     let r = Renderer::new(&scene, &opts)?;
     let (t_build, c_build) = (t0.elapsed().as_secs_f64(), process_cpu_s() - c0);
-    let (t1, c1) = (Instant::now(), process_cpu_s());
-    let film = r.render(&|_, _| {});
-    let (t_render, c_render) = (t1.elapsed().as_secs_f64(), process_cpu_s() - c1);
+    let repeat: usize = args.get(4).map(|s| s.parse()).transpose()?.unwrap_or(1).max(1);
+    let mut walls = Vec::new();
+    let (mut film, mut t_render, mut c_render) = (None, 0.0, 0.0);
+    for _ in 0..repeat {
+        let (t1, c1) = (Instant::now(), process_cpu_s());
+        film = Some(r.render(&|_, _| {}));
+        (t_render, c_render) = (t1.elapsed().as_secs_f64(), process_cpu_s() - c1);
+        walls.push(t_render);
+    }
+    let film = film.ok_or("no render")?;
     let comb = film.pass("Combined").ok_or("no Combined")?;
     let mean: f64 = comb.data.iter().map(|v| *v as f64).sum::<f64>() / comb.data.len() as f64;
     // FNV-1a over the bits of every Combined value: equal checksums mean a bit-identical image.
@@ -109,6 +118,17 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         mean,
         bits
     );
+    if repeat > 1 {
+        walls.sort_by(f64::total_cmp);
+        println!(
+            "  {} renders: wall min {:.2} s, median {:.2} s, max {:.2} s (sorted: {})",
+            repeat,
+            walls[0],
+            walls[repeat / 2],
+            walls[repeat - 1],
+            walls.iter().map(|w| format!("{w:.2}")).collect::<Vec<_>>().join(" ")
+        );
+    }
     if args.get(3).map(String::as_str) != Some("render-only") {
         ray_throughput(&r);
     }
