@@ -72,6 +72,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         size_y: None,
         power: 400.0,
         color: Color::Blackbody { kelvin: 4500.0 },
+        visible_to_camera: false,
     });
     scene.world = Some(World {
         color: Color::Rgb([0.1, 0.12, 0.15]),

@@ -22,7 +22,9 @@
 //! - Lights: Blender's own units, one to one (point/spot `energy` = power W and
 //!   `shadow_soft_size` = radius; spot `spot_size`, `spot_blend`; area `shape`, `size`, `size_y`,
 //!   power W, oriented with the native renderer's area axes; sun `energy` = strength W/m²,
-//!   `angle`). Blackbody colours are converted to RGB here ([`Color::rgb`]).
+//!   `angle`). Blackbody colours are converted to RGB here ([`Color::rgb`]). Every light
+//!   object's `visible_camera` is set explicitly: on only for area lights with
+//!   `visible_to_camera` (the native renderer's rule; Blender 4/5 default it to off too).
 //! - World: Background colour × strength, or an equirectangular Environment Texture rotated about
 //!   the up axis by `rotation_deg`.
 //! - Cycles: CPU, `--spp` samples, no adaptive sampling, no denoising, seed 0, all bounce limits
@@ -187,7 +189,11 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
                 "radius": radius, "spot_size_deg": spot_size_deg, "blend": blend,
             }),
             Light::Area {
-                position, shape, power, ..
+                position,
+                shape,
+                power,
+                visible_to_camera,
+                ..
             } => {
                 let (sx, sy) = l.area_size().unwrap_or((1.0, 1.0));
                 let shape = match shape {
@@ -198,7 +204,7 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
                 };
                 json!({
                     "type": "AREA", "name": name, "matrix": at(*position), "color": color, "energy": power,
-                    "shape": shape, "size": sx, "size_y": sy,
+                    "shape": shape, "size": sx, "size_y": sy, "visible_camera": visible_to_camera,
                 })
             }
             Light::Sun {
@@ -404,6 +410,9 @@ def add_light(scene, l):
     if l["type"] == "SUN":
         data.angle = math.radians(l["angle_deg"])
     ob = bpy.data.objects.new(l["name"], data)
+    # Camera rays see a light only where the scene asks (area lights); set explicitly rather
+    # than relying on Blender's default (off in 4/5).
+    ob.visible_camera = bool(l.get("visible_camera", False))
     scene.collection.objects.link(ob)
     ob.matrix_world = Y_UP_TO_Z_UP @ matrix(l["matrix"])
 

@@ -13,7 +13,8 @@
 //!   `Col ⊙ light`, then divided by the accumulated colour after averaging (0 where the colour
 //!   is 0). Hence, per pixel, `Col ⊙ (Dir + Ind)` summed over the three lobes `+ Emit + Env`
 //!   equals `Combined` up to float rounding.
-//! - `Emit`: emission seen directly by the camera (emissive surfaces and area lights).
+//! - `Emit`: emission seen directly by the camera: emissive surfaces, and area lights marked
+//!   `visible_to_camera` (lights are invisible to camera rays by default, as in Blender 4/5).
 //! - `Env`: the world seen directly by the camera.
 //! - `VolumeDir`, `VolumeInd`: always 0 (no participating media).
 //! - `Combined`: RGB plus alpha 1 (Cycles with an opaque film).

@@ -165,7 +165,7 @@ impl Renderer {
         let geom = &self.geom;
         let lights = &self.lights;
         let t_first = first.map(|h| h.t).unwrap_or(f32::INFINITY);
-        lights.area_hits(camera_ray, t_first, |l, _, _| {
+        lights.camera_area_hits(camera_ray, t_first, |l, _, _| {
             s.emit += l;
             s.combined += l;
         });

@@ -49,6 +49,8 @@ pub enum LightKind {
         disk: bool,
         radiance: V3,
         area: f32,
+        /// Seen by camera rays (else only by rays that scattered).
+        camera: bool,
     },
     Sun {
         dir: V3,
@@ -178,6 +180,7 @@ impl Lights {
                     position,
                     shape,
                     power: p,
+                    visible_to_camera,
                     ..
                 } => {
                     let (sx, sy) = l.area_size().unwrap_or((1.0, 1.0));
@@ -193,6 +196,7 @@ impl Lights {
                         disk,
                         radiance: color * (*p / (PI * area)),
                         area,
+                        camera: *visible_to_camera,
                     });
                     power.push(p * color.luminance());
                 }
@@ -345,6 +349,7 @@ impl Lights {
                 disk,
                 radiance,
                 area,
+                ..
             } => {
                 let (a, b) = if *disk {
                     concentric_disk(u1, u2)
@@ -430,7 +435,16 @@ impl Lights {
     }
 
     /// Area lights hit by `ray` before `tmax`: calls `f(radiance, light_pdf, t)` for each.
-    pub fn area_hits(&self, ray: &Ray, tmax: f32, mut f: impl FnMut(V3, f32, f32)) {
+    pub fn area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
+        self.area_hits_if(ray, tmax, false, f)
+    }
+
+    /// [`Lights::area_hits`] for a camera ray: only the area lights visible to the camera.
+    pub fn camera_area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
+        self.area_hits_if(ray, tmax, true, f)
+    }
+
+    fn area_hits_if(&self, ray: &Ray, tmax: f32, camera_ray: bool, mut f: impl FnMut(V3, f32, f32)) {
         for &i in &self.area_indices {
             if let LightKind::Area {
                 c,
@@ -440,8 +454,12 @@ impl Lights {
                 disk,
                 radiance,
                 area,
+                camera,
             } = &self.lights[i]
             {
+                if camera_ray && !camera {
+                    continue;
+                }
                 let denom = ray.d.dot(*n);
                 if denom >= 0.0 {
                     continue; // back side or parallel: one-sided emitter

@@ -26,7 +26,9 @@
 //!   the power into the cone, and neither do we.
 //! - Area light: `power` in W over area `A`, one-sided Lambertian emitter of radiance
 //!   `L = power / (π A)`; shapes `rectangle` (`size` × `size_y`), `square`, `disk` (diameter
-//!   `size`), `ellipse`.
+//!   `size`), `ellipse`. Camera rays look through it unless `visible_to_camera = true`
+//!   (Blender's Ray Visibility ▸ Camera, off by default in Blender 4/5); point, spot and sun
+//!   lights are never seen by the camera. Rays that scattered always see area lights.
 //! - Sun: `strength` is the irradiance in W/m² on a surface facing the sun; `angle_deg` its
 //!   angular diameter.
 //! - Emission (materials): radiance `emission_strength × emission_color` (W/m²/sr).
@@ -478,6 +480,11 @@ pub enum Light {
         power: f32,
         #[serde(default)]
         color: Color,
+        /// Whether camera rays see the emitter itself (Blender's Object ▸ Visibility ▸ Ray
+        /// Visibility ▸ Camera). Off by default, as for a light added in Blender 4/5: it still
+        /// lights the scene and shows in reflections, but the camera looks through it.
+        #[serde(default, skip_serializing_if = "is_false")]
+        visible_to_camera: bool,
     },
     Sun {
         #[serde(default)]
@@ -494,6 +501,9 @@ pub enum Light {
     },
 }
 
+fn is_false(b: &bool) -> bool {
+    !*b
+}
 fn default_spot_size() -> f32 {
     45.0
 }

@@ -29,6 +29,7 @@ shape = "rectangle"
 size = 1.0
 size_y = 0.5
 power = 100.0
+visible_to_camera = true
 
 [[lights]]
 type = "sun"
@@ -79,6 +80,11 @@ fn script_is_valid_python_with_exactly_the_passes() {
         .collect();
     assert_eq!(types, ["AREA", "SUN", "SPOT", "POINT"]);
     assert_eq!(desc["lights"][0]["energy"], 100.0);
+    // Camera visibility: the area light asked for it; the script sets it on every light
+    // object (off unless asked, Blender 4/5's default too).
+    assert_eq!(desc["lights"][0]["visible_camera"], true);
+    assert!(desc["lights"][1].get("visible_camera").is_none());
+    assert!(text.contains("ob.visible_camera = bool(l.get(\"visible_camera\", False))"));
     assert_eq!(desc["objects"][0]["name"], "floor's quad");
     // Light frames: local −Z is the direction of travel (sun (0.3, −1, 0.2) normalised).
     let m = &desc["lights"][1]["matrix"];

@@ -263,3 +263,60 @@ fn emissive_quad_seen_head_on_emits_its_strength() {
         }
     }
 }
+
+#[test]
+fn area_light_in_view_is_seen_by_the_camera_only_when_asked() {
+    // A 2 m square area light 3 m in front of the camera, facing it, filling the view (half-width
+    // of the view at 3 m: 3·tan 15° ≈ 0.8 m < 1 m), over a world of radiance w. Its radiance is
+    // P / (π A) · colour = 8π / (π · 4) = 2 W/(m² sr). Blender's default (camera visibility off):
+    // the camera looks through it, Emit = 0 and Combined = Env = w. Visible: Emit = 2 and, since a
+    // light does not block the ray (as in Cycles), Combined = 2 + w. Either way it lights nothing
+    // here (no surfaces), so every other pass is 0.
+    let w = [0.1f32, 0.2, 0.3];
+    let scene = |visible: bool| {
+        let mut cam = Camera::new(12, 12, 30.0);
+        cam.position = [0.0, 0.0, 3.0];
+        let mut s = Scene::new(cam);
+        s.lights.push(Light::Area {
+            name: "panel".into(),
+            position: [0.0, 0.0, 0.0],
+            direction: Some([0.0, 0.0, 1.0]),
+            look_at: None,
+            shape: pixl_render::scene::AreaShape::Square,
+            size: 2.0,
+            size_y: None,
+            power: 8.0 * PI as f32,
+            color: Color::Rgb([1.0, 1.0, 1.0]),
+            visible_to_camera: visible,
+        });
+        s.world = Some(World {
+            color: Color::Rgb(w),
+            strength: 1.0,
+            image: None,
+            rotation_deg: 0.0,
+        });
+        s
+    };
+    for visible in [false, true] {
+        let film = render(&scene(visible), &opts(2, 2), &no_progress).unwrap();
+        let (emit, env, comb) = (
+            film.pass("Emit").unwrap(),
+            film.pass("Env").unwrap(),
+            film.pass("Combined").unwrap(),
+        );
+        let radiance = if visible { 2.0 } else { 0.0 };
+        for y in 0..12 {
+            for x in 0..12 {
+                for c in 0..3 {
+                    let (e, b, k) = (emit.get(x, y, c), env.get(x, y, c), comb.get(x, y, c));
+                    assert!((e - radiance).abs() < 1e-5, "visible {visible}: Emit {e}");
+                    assert!((b - w[c]).abs() < 1e-6, "visible {visible}: Env {b}");
+                    assert!((k - (radiance + w[c])).abs() < 1e-5, "visible {visible}: Combined {k}");
+                }
+            }
+        }
+        for p in ["DiffDir", "DiffInd", "GlossDir", "GlossInd"] {
+            assert!(film.pass(p).unwrap().data.iter().all(|v| *v == 0.0), "{p}");
+        }
+    }
+}

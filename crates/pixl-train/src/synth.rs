@@ -268,6 +268,7 @@ pub fn draw_lighting(opts: &SynthOptions, index: usize, k: usize) -> (Vec<Light>
                     size_y: None,
                     power: rng.uniform(150.0, 600.0),
                     color,
+                    visible_to_camera: false,
                 },
                 "area",
             ),

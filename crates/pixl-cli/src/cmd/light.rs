@@ -90,6 +90,10 @@ pub struct AddArgs {
     /// Sun angular diameter, degrees.
     #[arg(long, default_value_t = 0.526)]
     pub angle: f32,
+    /// Area light: camera rays see the emitter itself (Blender's Ray Visibility ▸ Camera). Off by
+    /// default, as in Blender: the light still lights the scene and shows in reflections.
+    #[arg(long)]
+    pub visible_to_camera: bool,
 }
 
 /// Parses `x,y,z`.
@@ -114,6 +118,9 @@ fn light_from_args(a: &AddArgs, t: LightType) -> anyhow::Result<Light> {
         (Some(c), None) => Color::Rgb(c),
         (None, None) => Color::default(),
     };
+    if a.visible_to_camera && !matches!(t, LightType::Area) {
+        anyhow::bail!("--visible-to-camera is for area lights (point, spot and sun lights are never seen by the camera, as in Blender)");
+    }
     let need_pos = || {
         a.position
             .ok_or_else(|| anyhow::anyhow!("--type {t:?} needs --position x,y,z"))
@@ -157,6 +164,7 @@ fn light_from_args(a: &AddArgs, t: LightType) -> anyhow::Result<Light> {
             size_y: a.size_y,
             power: need_power()?,
             color,
+            visible_to_camera: a.visible_to_camera,
         },
         LightType::Sun => Light::Sun {
             name,
