@@ -3,7 +3,7 @@
 //!
 //! Contract: [`Bvh::intersect`] returns the closest hit in `(tmin, tmax)` and
 //! [`Bvh::occluded`] whether any hit lies there, both as the Möller–Trumbore test
-//! [`intersect_tri`] (two-sided) over every triangle would — the packet test performs the same
+//! [`intersect_tri`] (two-sided) over every triangle but the ray's [`Ray::skip`] would — the packet test performs the same
 //! floating-point operations in the same order per lane, so hit distances and barycentrics are
 //! bit-identical to [`intersect_tri`]'s; among triangles hit at exactly the same distance the
 //! one reported may differ. [`Hit::prim`] indexes the input slice given to [`Bvh::build`]
@@ -35,13 +35,19 @@ pub struct Tri {
     pub e2: V3,
 }
 
-/// A ray with precomputed reciprocal direction.
+/// A ray with precomputed reciprocal direction, and the primitive it leaves (never hit).
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
     pub o: V3,
     pub d: V3,
     pub inv_d: V3,
+    /// The primitive (index as in [`Hit::prim`]) the ray starts on, skipped by every query
+    /// (Cycles' self-intersection rule); [`NO_PRIM`] for rays that start in free space.
+    pub skip: u32,
 }
+
+/// [`Ray::skip`] of a ray that starts on no primitive.
+pub const NO_PRIM: u32 = u32::MAX;
 
 impl Ray {
     pub fn new(o: V3, d: V3) -> Self {
@@ -49,6 +55,15 @@ impl Ray {
             o,
             d,
             inv_d: V3::new(1.0 / d.x, 1.0 / d.y, 1.0 / d.z),
+            skip: NO_PRIM,
+        }
+    }
+
+    /// A ray leaving primitive `prim` (which it then never hits) from `o`.
+    pub fn leaving(prim: u32, o: V3, d: V3) -> Self {
+        Ray {
+            skip: prim,
+            ..Ray::new(o, d)
         }
     }
 }
@@ -647,6 +662,8 @@ struct RayPack {
     inv: [[f32; PACKET]; 3],
     /// Per axis, whether the direction is negative (the near plane is the box's `hi`).
     neg: [[bool; PACKET]; 3],
+    /// Per lane, the primitive the ray leaves ([`Ray::skip`]).
+    skip: [u32; PACKET],
     /// Current far limit per lane (the closest hit so far).
     tmax: [f32; PACKET],
     /// Closest hit so far per lane: barycentrics and (packet index, lane) of the triangle.
@@ -665,6 +682,7 @@ impl RayPack {
             d: [[0.0; PACKET]; 3],
             inv: [[0.0; PACKET]; 3],
             neg: [[false; PACKET]; 3],
+            skip: [NO_PRIM; PACKET],
             tmax: [f32::NEG_INFINITY; PACKET],
             b1: [0.0; PACKET],
             b2: [0.0; PACKET],
@@ -680,6 +698,7 @@ impl RayPack {
                 p.inv[a][r] = ray.inv_d[a];
                 p.neg[a][r] = ray.inv_d[a] < 0.0;
             }
+            p.skip[r] = ray.skip;
             p.tmax[r] = tm;
             act |= 1 << r;
         }
@@ -935,6 +954,7 @@ fn intersect_tri_lanes(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32
             & (u + v <= 1.0)
             & (tt > tmin)
             & (tt < p.tmax[r])
+            & (pk.prim[l] != p.skip[r])
             & (act >> r & 1 != 0);
         ok[r] = h;
         p.tmax[r] = if h { tt } else { p.tmax[r] };
@@ -1026,8 +1046,13 @@ fn intersect_tri4(pk: &Tri4, ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
         let qz = sx * e1y - sy * e1x;
         let v = (d.x * qx + d.y * qy + d.z * qz) * inv;
         let tt = (e2x * qx + e2y * qy + e2z * qz) * inv;
-        ok[i] =
-            (det.abs() >= 1e-20) & (0.0..=1.0).contains(&u) & (v >= 0.0) & (u + v <= 1.0) & (tt > tmin) & (tt < tmax);
+        ok[i] = (det.abs() >= 1e-20)
+            & (0.0..=1.0).contains(&u)
+            & (v >= 0.0)
+            & (u + v <= 1.0)
+            & (tt > tmin)
+            & (tt < tmax)
+            & (pk.prim[i] != ray.skip);
         t[i] = tt;
         b1[i] = u;
         b2[i] = v;
@@ -1126,8 +1151,13 @@ mod tests {
 
     /// Closest hit over all triangles by brute force: `(t, b1, b2, index)`.
     fn brute(tris: &[Tri], ray: &Ray, tmin: f32, tmax: f32) -> Option<(f32, f32, f32, usize)> {
+        brute_excluding(tris, ray, tmin, tmax, usize::MAX)
+    }
+
+    /// [`brute`] ignoring triangle `skip` (an index into `tris`, the input order).
+    fn brute_excluding(tris: &[Tri], ray: &Ray, tmin: f32, tmax: f32, skip: usize) -> Option<(f32, f32, f32, usize)> {
         let mut best: Option<(f32, f32, f32, usize)> = None;
-        for (i, t) in tris.iter().enumerate() {
+        for (i, t) in tris.iter().enumerate().filter(|(i, _)| *i != skip) {
             if let Some((th, b1, b2)) = intersect_tri(t, ray, tmin, tmax) {
                 if best.is_none_or(|b| th < b.0) {
                     best = Some((th, b1, b2, i));
@@ -1176,6 +1206,7 @@ mod tests {
     /// partial packets, random far limits.
     fn check_packets(isa: Isa, tris: &[Tri], n_rays: usize, seed: u64) {
         let (bvh, perm) = Bvh::build(tris);
+        let inv = inverse(&perm);
         let mut rng = Rng::new(seed);
         let mut k = 0;
         while k < n_rays {
@@ -1200,7 +1231,17 @@ mod tests {
                 if j % 7 == 3 {
                     d.x = 0.0;
                 }
-                rays.push(Ray::new(o, d.normalize()));
+                // Some lanes leave a random triangle (skipped by the query, as for rays
+                // spawned on a surface).
+                let skip = if j % 4 == 2 {
+                    inv[rng.below(tris.len())]
+                } else {
+                    NO_PRIM
+                };
+                rays.push(Ray {
+                    skip,
+                    ..Ray::new(o, d.normalize())
+                });
                 tmax.push(if j % 3 == 1 {
                     rng.uniform(0.5, 12.0)
                 } else {
@@ -1212,7 +1253,12 @@ mod tests {
             let mut occ = vec![false; len];
             bvh.occluded_packet_isa(isa, &rays, tmin, &tmax, &mut occ);
             for j in 0..len {
-                let want = brute(tris, &rays[j], tmin, tmax[j]);
+                let skip = if rays[j].skip == NO_PRIM {
+                    usize::MAX
+                } else {
+                    perm[rays[j].skip as usize] as usize
+                };
+                let want = brute_excluding(tris, &rays[j], tmin, tmax[j], skip);
                 match (want, &got[j]) {
                     (None, None) => {}
                     (Some(w), Some(h)) => same_hit(tris, &perm, &rays[j], tmin, tmax[j], w, h),
@@ -1224,15 +1270,27 @@ mod tests {
         }
     }
 
+    /// Position of each input primitive in the BVH's order (`inverse(perm)[perm[i]] = i`).
+    fn inverse(perm: &[u32]) -> Vec<u32> {
+        let mut inv = vec![0u32; perm.len()];
+        for (i, &p) in perm.iter().enumerate() {
+            inv[p as usize] = i as u32;
+        }
+        inv
+    }
+
     fn check_isa(isa: Isa, tris: &[Tri], n_rays: usize, seed: u64) -> usize {
         let (bvh, perm) = Bvh::build(tris);
+        let inv = inverse(&perm);
         let sorted: Vec<Tri> = perm.iter().map(|&i| tris[i as usize]).collect();
         let mut rng = Rng::new(seed);
         let mut hits = 0;
         for k in 0..n_rays {
+            let mut on = usize::MAX;
             let o = if k % 3 == 0 {
                 // On a random triangle, as for rays leaving a surface.
-                let t = &tris[rng.below(tris.len())];
+                on = rng.below(tris.len());
+                let t = &tris[on];
                 let (a, b) = (rng.f32() * 0.5, rng.f32() * 0.5);
                 t.p0 + t.e1 * a + t.e2 * b
             } else {
@@ -1247,13 +1305,19 @@ mod tests {
                 }
                 _ => {}
             }
-            let ray = Ray::new(o, d.normalize());
+            // Half of the rays on a triangle leave it (it is skipped), half do not.
+            let leaves = k % 6 == 0;
+            let ray = if leaves {
+                Ray::leaving(inv[on], o, d.normalize())
+            } else {
+                Ray::new(o, d.normalize())
+            };
             let (tmin, tmax) = match k % 4 {
                 0 => (1e-4, rng.uniform(0.5, 6.0)),
                 1 => (rng.uniform(0.0, 2.0), f32::INFINITY),
                 _ => (0.0, f32::INFINITY),
             };
-            let want = brute(tris, &ray, tmin, tmax);
+            let want = brute_excluding(tris, &ray, tmin, tmax, if leaves { on } else { usize::MAX });
             let got = bvh.intersect_isa(isa, &ray, tmin, tmax);
             match (want, got) {
                 (None, None) => {}

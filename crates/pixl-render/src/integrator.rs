@@ -152,10 +152,12 @@ impl Renderer {
         acc
     }
 
-    fn spawn(hit: &SurfaceHit, ng_side: V3, wi: V3) -> Ray {
-        let eps = 1e-4 * (1.0 + hit.p.x.abs().max(hit.p.y.abs()).max(hit.p.z.abs()));
-        let n = if wi.dot(ng_side) >= 0.0 { ng_side } else { -ng_side };
-        Ray::new(hit.p + n * eps, wi)
+    /// A ray leaving the surface at `hit` along `wi`. As in Cycles (3.2+), it starts exactly at
+    /// the hit point and skips the triangle it leaves instead of being pushed off the surface:
+    /// an offset would cross a surface that touches this one (a glass resting on a table) and
+    /// leak light through geometry thinner than the offset.
+    fn spawn(hit: &SurfaceHit, wi: V3) -> Ray {
+        Ray::leaving(hit.prim, hit.p, wi)
     }
 
     /// One camera path, given the camera ray's closest hit `first`: its contribution to
@@ -207,7 +209,7 @@ impl Renderer {
                     let e: BsdfEval = bsdf.eval(ls.wi);
                     let f = e.total();
                     if !f.is_zero() && ls.pdf > 0.0 {
-                        let ray = Self::spawn(&hit, bsdf.ng(), ls.wi);
+                        let ray = Self::spawn(&hit, ls.wi);
                         let tmax = if ls.dist.is_finite() {
                             ls.dist * (1.0 - 1e-3)
                         } else {
@@ -245,7 +247,7 @@ impl Renderer {
             if !beta.is_finite() || beta.is_zero() {
                 break;
             }
-            let ray = Self::spawn(&hit, bsdf.ng(), bs.wi);
+            let ray = Self::spawn(&hit, bs.wi);
             let next = geom.intersect(&ray, 0.0, f32::INFINITY);
             let t_next = next.map(|h| h.t).unwrap_or(f32::INFINITY);
             let mis = |light_pdf: f32| {

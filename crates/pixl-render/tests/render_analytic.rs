@@ -320,3 +320,68 @@ fn area_light_in_view_is_seen_by_the_camera_only_when_asked() {
         }
     }
 }
+
+#[test]
+fn no_light_leaks_through_a_close_cover_and_no_acne_far_from_the_origin() {
+    // A floor (y = 0) around x = 1000 m, a sun straight down (angle 0) of strength 3, and a camera
+    // 5 mm above the floor looking along −Z. Rays leave a surface exactly at the hit point and
+    // skip the triangle they leave (Cycles' rule), so:
+    // - without a cover, every floor pixel gets DiffDir = strength / π exactly as in
+    //   `lambertian_plane_under_sun_is_strength_times_cosine` (no self-shadowing "acne" from
+    //   the floor's other triangle, even where float error in the hit point is ~1e-4 m);
+    // - with an opaque cover 1 cm above the floor, no sunlight reaches the floor: DiffDir = 0
+    //   (an offset of 1e-4·(1 + |p|) ≈ 0.1 m here, the old rule, started the shadow ray above
+    //   the cover and lit the floor).
+    let scene = |cover: bool| {
+        let mut cam = Camera::new(16, 12, 40.0);
+        cam.position = [1000.0, 0.005, 0.0];
+        cam.look_at = Some([1000.0, 0.005, -1.0]);
+        let mut s = Scene::new(cam);
+        let quad = |name: &str, y: f32| Object {
+            name: name.into(),
+            shape: Shape::Quad { size: [200.0, 200.0] },
+            transform: Transform {
+                translate: [1000.0, y, 0.0],
+                rotate_deg: [-90.0, 0.0, 0.0],
+                ..Default::default()
+            },
+            material: Material::diffuse([0.8, 0.8, 0.8]),
+        };
+        s.objects.push(quad("floor", 0.0));
+        if cover {
+            s.objects.push(quad("cover", 0.01));
+        }
+        s.lights.push(Light::Sun {
+            name: String::new(),
+            direction: Some([0.0, -1.0, 0.0]),
+            strength: 3.0,
+            angle_deg: 0.0,
+            color: Color::Rgb([1.0, 1.0, 1.0]),
+        });
+        s
+    };
+    for cover in [false, true] {
+        let film = render(&scene(cover), &opts(4, 1), &no_progress).unwrap();
+        let (dir, depth) = (film.pass("DiffDir").unwrap(), film.pass("Depth").unwrap());
+        let mut floor_pixels = 0;
+        for y in 0..12 {
+            for x in 0..16 {
+                // Rows below the horizon see the floor (within 0.5 m; the cover, when there, is
+                // above the horizon).
+                if y < 7 || depth.get(x, y, 0) > 1.0 {
+                    continue;
+                }
+                floor_pixels += 1;
+                let want = if cover { 0.0 } else { 3.0 / PI };
+                for c in 0..3 {
+                    let got = dir.get(x, y, c) as f64;
+                    assert!(
+                        (got - want).abs() <= 5e-4 * want,
+                        "cover {cover}: pixel ({x}, {y}) DiffDir {got} vs {want}"
+                    );
+                }
+            }
+        }
+        assert!(floor_pixels >= 16 * 4, "only {floor_pixels} floor pixels");
+    }
+}
