@@ -826,6 +826,28 @@ impl Scene {
         self.validate_at(Path::new("<scene>"))
     }
 
+    /// What the native renderer draws differently from Cycles in this scene, one sentence per
+    /// object (empty when nothing): today only rough transmission, which is rendered as smooth
+    /// glass (see [`crate::material`]).
+    pub fn approximations(&self) -> Vec<String> {
+        self.objects
+            .iter()
+            .enumerate()
+            .filter(|(_, o)| {
+                let m = &o.material;
+                // (A roughness texture multiplies `roughness`, so 0 stays smooth.)
+                m.transmission > 0.0 && m.metallic < 1.0 && m.roughness > 0.0
+            })
+            .map(|(i, o)| {
+                let name = if o.name.is_empty() { format!("object {i}") } else { format!("object {:?}", o.name) };
+                format!(
+                    "{name}: transmission {} with roughness {} is rendered as smooth glass here (Cycles renders it rough)",
+                    o.material.transmission, o.material.roughness
+                )
+            })
+            .collect()
+    }
+
     /// Checks that every referenced file (meshes, textures, world image) exists.
     pub fn validate_files(&self) -> Result<()> {
         self.validate_files_at(Path::new("<scene>"))
@@ -1016,6 +1038,34 @@ pub(crate) fn normalize(a: [f32; 3]) -> [f32; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn rough_transmission_is_reported_as_an_approximation() {
+        let scene = |glass: &str| {
+            Scene::from_toml_str(&format!(
+                "[camera]\nwidth = 4\nheight = 4\nfov_y_deg = 40.0\n\n\
+                 [[objects]]\nname = \"floor\"\nshape = {{ type = \"quad\", size = [1.0, 1.0] }}\n\
+                 material = {{ roughness = 0.5 }}\n\n\
+                 [[objects]]\nshape = {{ type = \"sphere\", radius = 0.5 }}\nmaterial = {{ {glass} }}\n"
+            ))
+            .unwrap()
+        };
+        // Rough glass: one note naming the (unnamed, second) object and its values.
+        let notes = scene("transmission = 1.0, roughness = 0.3").approximations();
+        assert_eq!(notes.len(), 1, "{notes:?}");
+        assert!(
+            notes[0].starts_with("object 1:") && notes[0].contains("roughness 0.3"),
+            "{notes:?}"
+        );
+        // Smooth glass, rough opaque surfaces and rough metal with a transmission value: nothing.
+        for m in [
+            "transmission = 1.0, roughness = 0.0",
+            "roughness = 0.8",
+            "transmission = 1.0, metallic = 1.0, roughness = 0.4",
+        ] {
+            assert!(scene(m).approximations().is_empty(), "{m}");
+        }
+    }
 
     const EXAMPLE: &str = r#"
 [camera]
