@@ -6,7 +6,7 @@
 //!   `base·(1−metallic)·(1−transmission)·(1 − A_spec/w)` (the base under the specular coat of
 //!   albedo `A_spec`); glossy the energy-compensated, Fresnel-weighted albedos of the metal and
 //!   dielectric GGX lobes plus the glass's Fresnel reflectance; transmission
-//!   `base·(1−metallic)·transmission·(1−F)`. Averaged over samples.
+//!   `√base·(1−metallic)·transmission·(1−F)` (the per-interface tint). Averaged over samples.
 //! - `*Dir`: light reaching the first hit straight from a light (next-event estimation plus
 //!   MIS-weighted emission found by the first BSDF ray); `*Ind`: all other light scattered at the
 //!   first hit. Both are stored **divided by the colour pass** as Cycles does: accumulated as

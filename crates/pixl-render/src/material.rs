@@ -7,9 +7,10 @@
 //!   Schlick Fresnel `F0 = min(base, 1)` (Cycles' F82-tint with a white tint). Then
 //!   `w ← w · (1 − metallic)`.
 //! - **Transmission** (weight `w · transmission`): a *smooth* dielectric of the given IOR
-//!   (Fresnel-weighted mirror reflection + refraction tinted by the base colour), whatever the
-//!   roughness — rough glass is rendered as smooth glass (known approximation; Cycles uses rough
-//!   GGX glass tinted by `√base`). Radiance is not scaled by `η²` at refraction, as Cycles does
+//!   (Fresnel-weighted mirror reflection + refraction tinted by `√base`, as Cycles' Principled
+//!   BSDF does, so that light crossing a solid object — in and out — is tinted by `base`),
+//!   whatever the roughness — rough glass is rendered as smooth glass (known approximation;
+//!   Cycles uses rough GGX glass). Radiance is not scaled by `η²` at refraction, as Cycles does
 //!   not for camera paths. Then `w ← w · (1 − transmission)`.
 //! - **Dielectric specular** (weight `w`): GGX with the exact dielectric Fresnel of
 //!   `η = ior_from_F0(F0)`, `F0 = ((ior−1)/(ior+1))² · 2 · specular_ior_level` (the real Fresnel
@@ -195,6 +196,8 @@ impl Bsdf {
         let roughness = roughness.clamp(0.0, 1.0);
         let metallic = metallic.clamp(0.0, 1.0);
         let base = base.max(V3::ZERO);
+        // Transmission tint per interface (Cycles: `sqrt(base_color)`).
+        let tint = V3::new(base.x.sqrt(), base.y.sqrt(), base.z.sqrt());
         // Outward orientation from the shading normal; entering if wo is on the outside.
         let ng_out = if hit.ng.dot(hit.ns) < 0.0 { -hit.ng } else { hit.ng };
         let entering = wo.dot(ng_out) >= 0.0;
@@ -253,7 +256,7 @@ impl Bsdf {
         let w_d = kd.luminance();
         let w_s = gloss_albedo.luminance();
         let w_t = if trans_w > 0.0 {
-            trans_w * (fr + (1.0 - fr) * base.luminance()).max(1e-3)
+            trans_w * (fr + (1.0 - fr) * tint.luminance()).max(1e-3)
         } else {
             0.0
         };
@@ -266,7 +269,7 @@ impl Bsdf {
         let colors = [
             kd,
             gloss_albedo + V3::splat(trans_w * fr),
-            base * (trans_w * (1.0 - fr)),
+            tint * (trans_w * (1.0 - fr)),
         ];
         Bsdf {
             lambda_o: ggx_lambda(wo_local, alpha),
@@ -284,7 +287,7 @@ impl Bsdf {
             spec_w,
             spec_eta,
             trans_w,
-            tint: base,
+            tint,
             eta,
             p_diff,
             p_spec,
@@ -465,6 +468,31 @@ mod tests {
 
     fn view(mu: f32) -> V3 {
         V3::new((1.0 - mu * mu).sqrt(), 0.0, mu)
+    }
+
+    #[test]
+    fn glass_transmission_is_tinted_by_the_square_root_of_the_base() {
+        // Cycles' Principled BSDF tints refraction by √base per interface (base once for a ray
+        // that enters and leaves a solid object). At normal incidence on IOR 1.5: F = 0.04, so
+        // TransCol = √0.25 · 0.96 = 0.48 and GlossCol = 0.04; sampling the BSDF, the mean
+        // transmission weight over the lobe choice equals TransCol.
+        let m = MaterialData {
+            transmission: 1.0,
+            ..material(0.25, 0.0, 0.0, 0.5)
+        };
+        let b = Bsdf::new(&m, &flat_hit(), view(1.0));
+        assert!((b.colors[2].x - 0.48).abs() < 1e-6, "TransCol {}", b.colors[2].x);
+        assert!((b.colors[1].x - 0.04).abs() < 1e-6, "GlossCol {}", b.colors[1].x);
+        let n = 100_000;
+        let mut sum = 0.0f64;
+        for i in 0..n {
+            if let Some(s) = b.sample((i as f32 + 0.5) / n as f32, 0.5, 0.5) {
+                assert!(s.delta);
+                sum += s.weight.transmission.x as f64;
+            }
+        }
+        let mean = sum / n as f64;
+        assert!((mean - 0.48).abs() < 1e-3, "mean transmission weight {mean}");
     }
 
     #[test]
