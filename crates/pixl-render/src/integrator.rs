@@ -264,6 +264,9 @@ impl Renderer {
                 if let Some((le, pdf)) = lights.env_hit(ray.d) {
                     add_path_light(&mut s, &frac, beta * le * mis(pdf), depth);
                 }
+                lights.sun_hits(ray.d, |l, pdf| {
+                    add_path_light(&mut s, &frac, beta * l * mis(pdf), depth);
+                });
                 break;
             };
             let m2 = &geom.materials[geom.attrs[h2.prim as usize].material as usize];

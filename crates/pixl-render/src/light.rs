@@ -10,13 +10,18 @@
 //!   (hard edge for `blend = 0`), not renormalised to the cone.
 //! - Area: one-sided Lambertian, radiance `P·color / (π A)`, emitting along its direction; its
 //!   local X (`size`) is `normalize(d × Y)` (or +X when `d ∥ Y`), local Y is `(−d) × X`.
-//! - Sun: irradiance `strength·color`, directions uniform in its angular cone.
+//! - Sun: irradiance `strength·color` on a surface facing it; with an angular diameter > 0 a
+//!   cone of uniform radiance `E / Ω` (`Ω = 2π(1 − cos(angle/2))`, directions sampled uniformly
+//!   in it), with angle 0 a delta light of irradiance `E`.
 //! - World: radiance `strength·color` (× texel), sampled uniformly over the sphere.
 //! - Emissive triangles: two-sided, radiance = the material's emission, sampled by area.
 //!
-//! Point, spot and sun are invisible to camera and BSDF rays (delta lights, sampled only by
-//! next-event estimation); area lights, emissive triangles and the world are hit by BSDF rays
-//! and combined with light sampling by MIS (power heuristic). Area lights do not occlude.
+//! Point and spot lights, and a sun of angle 0, are invisible to camera and BSDF rays (delta
+//! lights, sampled only by next-event estimation). Area lights, emissive triangles, the world
+//! and a sun of angle > 0 are hit by BSDF rays (the sun only by rays that escape the scene, as
+//! in Cycles — so smooth glass and mirrors show its glint) and combined with light sampling by
+//! MIS (power heuristic). No light is seen by camera rays except emissive triangles, the
+//! world, and area lights marked `visible_to_camera`. Area lights do not occlude.
 use crate::bvh::Ray;
 use crate::error::Result;
 use crate::geometry::Geometry;
@@ -56,6 +61,8 @@ pub enum LightKind {
         dir: V3,
         irradiance: V3,
         cos_max: f32,
+        /// Solid angle of the cone (0: a delta light).
+        omega: f32,
     },
     Env,
     Tri {
@@ -107,6 +114,8 @@ pub struct Lights {
     pub env: Option<Environment>,
     env_index: Option<usize>,
     area_indices: Vec<usize>,
+    /// Suns with an angular size (hit by rays that escape).
+    sun_indices: Vec<usize>,
 }
 
 fn smoothstep(x: f32) -> f32 {
@@ -133,6 +142,7 @@ impl Lights {
         let mut lights = Vec::new();
         let mut power = Vec::new();
         let mut area_indices = Vec::new();
+        let mut sun_indices = Vec::new();
         for l in &scene.lights {
             let color = V3::from_arr(l.color().rgb());
             let dir = l
@@ -204,10 +214,17 @@ impl Lights {
                     strength, angle_deg, ..
                 } => {
                     let cos_max = (0.5 * angle_deg.to_radians()).cos().min(1.0 - 1e-7);
+                    // Ω = 2π(1 − cos δ) = 4π sin²(δ/2), in f64: 1 − cos δ loses digits in f32.
+                    let half = 0.5 * (*angle_deg as f64).to_radians();
+                    let omega = (4.0 * std::f64::consts::PI * (0.5 * half).sin().powi(2)) as f32;
+                    if omega > 0.0 {
+                        sun_indices.push(lights.len());
+                    }
                     lights.push(LightKind::Sun {
                         dir,
                         irradiance: color * *strength,
                         cos_max,
+                        omega,
                     });
                     power.push(strength * color.luminance() * PI * radius * radius);
                 }
@@ -266,6 +283,7 @@ impl Lights {
             env,
             env_index,
             area_indices,
+            sun_indices,
         })
     }
 
@@ -374,15 +392,21 @@ impl Lights {
                 dir,
                 irradiance,
                 cos_max,
+                omega,
             } => {
                 let f = Frame::new(-*dir);
                 let wi = f.to_world(uniform_cone(u1, u2, *cos_max));
+                let (li, pdf, delta) = if *omega > 0.0 {
+                    (*irradiance / *omega, pick / *omega, false)
+                } else {
+                    (*irradiance, pick, true)
+                };
                 Some(LightSample {
-                    li: *irradiance,
+                    li,
                     wi,
                     dist: f32::INFINITY,
-                    pdf: pick,
-                    delta: true,
+                    pdf,
+                    delta,
                 })
             }
             LightKind::Env => {
@@ -422,6 +446,24 @@ impl Lights {
         let env = self.env.as_ref()?;
         let pdf = self.env_index.map(|i| self.dist.pmf(i) / (4.0 * PI)).unwrap_or(0.0);
         Some((env.eval(d), pdf))
+    }
+
+    /// Suns (of angle > 0) a ray escaping the scene along `d` sees: calls `f(radiance,
+    /// light_pdf)` for each.
+    pub fn sun_hits(&self, d: V3, mut f: impl FnMut(V3, f32)) {
+        for &i in &self.sun_indices {
+            if let LightKind::Sun {
+                dir,
+                irradiance,
+                cos_max,
+                omega,
+            } = &self.lights[i]
+            {
+                if -d.dot(*dir) >= *cos_max {
+                    f(*irradiance / *omega, self.dist.pmf(i) / *omega);
+                }
+            }
+        }
     }
 
     /// Light-sampling pdf (solid angle) of an emissive triangle hit at distance `t` with

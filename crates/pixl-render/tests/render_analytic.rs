@@ -385,3 +385,80 @@ fn no_light_leaks_through_a_close_cover_and_no_acne_far_from_the_origin() {
         assert!(floor_pixels >= 16 * 4, "only {floor_pixels} floor pixels");
     }
 }
+
+#[test]
+fn sun_with_an_angle_lights_a_plane_as_its_cone_does() {
+    // A sun of angular diameter 20° (half-angle δ = 10°) is a cone of uniform radiance
+    // L = E / Ω, Ω = 2π(1 − cos δ); it is now both light-sampled and hit by BSDF rays (MIS).
+    // A cap of half-angle δ centred θ from the normal, wholly above the horizon, has projected
+    // solid angle π sin²δ cos θ, so the plane's irradiance is L π sin²δ cos θ and DiffDir =
+    // L sin²δ cos θ (the same expectation as light sampling alone gave before).
+    let w = 16;
+    let mut s = floor_scene([0.8, 0.8, 0.8], w);
+    let d = [0.4f64, -1.0, 0.3];
+    let cos = -d[1] / (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    let (strength, delta) = (3.0f64, 10f64.to_radians());
+    s.lights.push(Light::Sun {
+        name: String::new(),
+        direction: Some(d.map(|v| v as f32)),
+        strength: strength as f32,
+        angle_deg: 20.0,
+        color: Color::Rgb([1.0, 1.0, 1.0]),
+    });
+    let film = render(&s, &opts(64, 1), &no_progress).unwrap();
+    let dir = film.pass("DiffDir").unwrap();
+    let omega = 2.0 * PI * (1.0 - delta.cos());
+    let expect = strength / omega * delta.sin().powi(2) * cos;
+    let mean = dir.data.iter().map(|v| *v as f64).sum::<f64>() / dir.data.len() as f64;
+    assert!(
+        mean.is_finite() && (mean - expect).abs() < 0.01 * expect,
+        "DiffDir {mean} vs {expect}"
+    );
+}
+
+#[test]
+fn smooth_glass_reflects_the_sun() {
+    // A smooth glass floor (IOR 3: F = ((3 − 1)/(3 + 1))² = 0.25 at normal incidence) seen
+    // straight down through a narrow camera, under a sun straight down of angular diameter 60°:
+    // every mirror-reflected camera ray (within 1° of vertical) lies in the sun's cone, so
+    // GlossDir = L = E / Ω with Ω = 2π(1 − cos 30°) — the light the sun gives a mirror. Before
+    // suns were hit by BSDF rays, smooth glass never showed the sun (GlossDir 0). The
+    // reflection is chosen with probability F per sample, so the check is on the image mean.
+    let mut cam = Camera::new(8, 8, 2.0);
+    cam.position = [0.0, 5.0, 0.0];
+    cam.look_at = Some([0.0, 0.0, 0.0]);
+    cam.up = [0.0, 0.0, -1.0];
+    let mut s = Scene::new(cam);
+    s.objects.push(Object {
+        name: "glass".into(),
+        shape: Shape::Quad { size: [20.0, 20.0] },
+        transform: Transform {
+            rotate_deg: [-90.0, 0.0, 0.0],
+            ..Default::default()
+        },
+        material: Material {
+            transmission: 1.0,
+            roughness: 0.0,
+            ior: 3.0,
+            ..Default::default()
+        },
+    });
+    let strength = 2.0f64;
+    s.lights.push(Light::Sun {
+        name: String::new(),
+        direction: Some([0.0, -1.0, 0.0]),
+        strength: strength as f32,
+        angle_deg: 60.0,
+        color: Color::Rgb([1.0, 1.0, 1.0]),
+    });
+    let film = render(&s, &opts(256, 1), &no_progress).unwrap();
+    let (gd, gc) = (film.pass("GlossDir").unwrap(), film.pass("GlossCol").unwrap());
+    let mean = |img: &pixl_core::Image| img.data.iter().map(|v| *v as f64).sum::<f64>() / img.data.len() as f64;
+    let expect = strength / (2.0 * PI * (1.0 - 30f64.to_radians().cos()));
+    assert!((mean(&gc) - 0.25).abs() < 1e-3, "GlossCol {}", mean(&gc));
+    assert!(
+        (mean(&gd) - expect).abs() < 0.03 * expect,
+        "GlossDir {} vs {expect}",
+        mean(&gd)
+    );
+}
