@@ -4,9 +4,13 @@
 //! (or, for delta lights, the radiance-equivalent `I/d²` or irradiance) and the pdf including
 //! the pick probability.
 //!
-//! - Point: intensity `I = P·color / 4π`; a non-zero radius jitters the sample point on a disk
-//!   of that radius facing the shading point (soft shadows, same irradiance far away).
-//! - Spot: point intensity masked by `smoothstep(0, 1, (cos θ − cos(size/2)) / ((1 − cos(size/2))·blend))`
+//! - Point: intensity `I = P·color / 4π`. With a radius `r` it is a sphere, as in Cycles: seen as
+//!   a disk of radiance `I / (π r²)` (the same irradiance `I cos θ / d²` wherever the sphere is
+//!   wholly above the horizon), light-sampled uniformly in the cone it subtends and hit by BSDF
+//!   rays; when that cone is too narrow for f32 (`1 − cos θmax < 1e-5`) or the shading point is
+//!   inside, the sample point is jittered on a facing disk of the radius (light sampling only).
+//! - Spot: point intensity (a sphere with a radius, as above) masked by
+//!   `smoothstep(0, 1, (cos θ − cos(size/2)) / ((1 − cos(size/2))·blend))`
 //!   (hard edge for `blend = 0`), not renormalised to the cone.
 //! - Area: one-sided Lambertian, radiance `P·color / (π A)`, emitting along its direction; its
 //!   local X (`size`) is `normalize(d × Y)` (or +X when `d ∥ Y`), local Y is `(−d) × X`.
@@ -16,9 +20,10 @@
 //! - World: radiance `strength·color` (× texel), sampled uniformly over the sphere.
 //! - Emissive triangles: two-sided, radiance = the material's emission, sampled by area.
 //!
-//! Point and spot lights, and a sun of angle 0, are invisible to camera and BSDF rays (delta
-//! lights, sampled only by next-event estimation). Area lights, emissive triangles, the world
-//! and a sun of angle > 0 are hit by BSDF rays (the sun only by rays that escape the scene, as
+//! Point and spot lights without a radius, and a sun of angle 0, are invisible to camera and BSDF
+//! rays (delta lights, sampled only by next-event estimation). Area lights, sphere (point / spot
+//! with a radius) lights, emissive triangles, the world and a sun of angle > 0 are hit by BSDF
+//! rays (the sun only by rays that escape the scene, as
 //! in Cycles — so smooth glass and mirrors show its glint) and combined with light sampling by
 //! MIS (power heuristic). No light is seen by camera rays except emissive triangles, the
 //! world, and area lights marked `visible_to_camera`. Area lights do not occlude.
@@ -116,11 +121,73 @@ pub struct Lights {
     area_indices: Vec<usize>,
     /// Suns with an angular size (hit by rays that escape).
     sun_indices: Vec<usize>,
+    /// Point and spot lights with a radius (spheres, hit by BSDF rays).
+    sphere_indices: Vec<usize>,
 }
 
 fn smoothstep(x: f32) -> f32 {
     let x = x.clamp(0.0, 1.0);
     x * x * (3.0 - 2.0 * x)
+}
+
+/// The cone a sphere light of centre `c` and radius `r` subtends from `x`, when it is worth
+/// sampling as one: `x` outside the sphere and the cone not so narrow that `1 − cos θmax` is
+/// lost in f32 (then the light is treated as a point, by light sampling alone).
+struct SphereCone {
+    /// Unit direction from `x` to the centre, and the distance.
+    axis: V3,
+    dist: f32,
+    cos_max: f32,
+    /// Solid angle `2π (1 − cos θmax)`.
+    omega: f32,
+}
+
+impl SphereCone {
+    fn new(c: V3, r: f32, x: V3) -> Option<SphereCone> {
+        if !(r > 0.0) {
+            return None;
+        }
+        let to = c - x;
+        let dist = to.length();
+        if !(dist > r * 1.0001) {
+            return None;
+        }
+        let sin2 = (r / dist) * (r / dist);
+        let cos_max = (1.0 - sin2).max(0.0).sqrt();
+        // 1 − cos θmax = sin² / (1 + cos), without cancellation.
+        let one_minus = sin2 / (1.0 + cos_max);
+        if one_minus < 1e-5 {
+            return None;
+        }
+        Some(SphereCone {
+            axis: to / dist,
+            dist,
+            cos_max,
+            omega: 2.0 * PI * one_minus,
+        })
+    }
+}
+
+impl LightKind {
+    /// A spot light's cone mask for the direction `from_light` (light → shading point,
+    /// any length); 1 for every other light.
+    fn spot_mask(&self, from_light: V3) -> f32 {
+        match self {
+            LightKind::Spot {
+                dir, cos_half, smooth, ..
+            } => {
+                let cos_a = dir.dot(from_light.normalize());
+                if *smooth > 0.0 {
+                    smoothstep((cos_a - cos_half) / smooth)
+                } else if cos_a > *cos_half {
+                    1.0
+                } else {
+                    0.0
+                }
+            }
+            _ => 1.0,
+        }
+    }
 }
 
 /// The local X axis of an area light travelling along `d` (see module docs).
@@ -143,6 +210,7 @@ impl Lights {
         let mut power = Vec::new();
         let mut area_indices = Vec::new();
         let mut sun_indices = Vec::new();
+        let mut sphere_indices = Vec::new();
         for l in &scene.lights {
             let color = V3::from_arr(l.color().rgb());
             let dir = l
@@ -158,6 +226,9 @@ impl Lights {
                     ..
                 } => {
                     let intensity = color * (*p / (4.0 * PI));
+                    if *radius > 0.0 {
+                        sphere_indices.push(lights.len());
+                    }
                     lights.push(LightKind::Point {
                         p: V3::from_arr(*position),
                         intensity,
@@ -176,6 +247,9 @@ impl Lights {
                     let intensity = color * (*p / (4.0 * PI));
                     let cos_half = (0.5 * spot_size_deg.to_radians()).cos();
                     let smooth = (1.0 - cos_half) * blend;
+                    if *radius > 0.0 {
+                        sphere_indices.push(lights.len());
+                    }
                     lights.push(LightKind::Spot {
                         p: V3::from_arr(*position),
                         dir,
@@ -284,6 +358,7 @@ impl Lights {
             env_index,
             area_indices,
             sun_indices,
+            sphere_indices,
         })
     }
 
@@ -323,6 +398,26 @@ impl Lights {
                 radius,
                 ..
             } => {
+                let light = &self.lights[i];
+                let mask = light.spot_mask(p - *lp);
+                if mask <= 0.0 {
+                    return None;
+                }
+                if let Some(cone) = SphereCone::new(*lp, *radius, p) {
+                    // A sphere light: a direction uniform in the cone it subtends.
+                    let wi = Frame::new(cone.axis).to_world(uniform_cone(u1, u2, cone.cos_max));
+                    let b = cone.dist * wi.dot(cone.axis);
+                    let dist = b - (radius * radius - (cone.dist * cone.dist - b * b)).max(0.0).sqrt();
+                    return Some(LightSample {
+                        li: *intensity / (PI * radius * radius) * mask,
+                        wi,
+                        dist,
+                        pdf: pick / cone.omega,
+                        delta: false,
+                    });
+                }
+                // A point (or a sphere too small or too close to sample as one): the position
+                // jittered on a disk of the radius facing the shading point.
                 let mut q = *lp;
                 if *radius > 0.0 {
                     let f = Frame::new((p - *lp).normalize());
@@ -333,26 +428,8 @@ impl Lights {
                 if !(dist > 0.0) {
                     return None;
                 }
-                let mut li = *intensity / (dist * dist);
-                if let LightKind::Spot {
-                    dir, cos_half, smooth, ..
-                } = &self.lights[i]
-                {
-                    let cos_a = dir.dot((p - *lp).normalize());
-                    let mask = if *smooth > 0.0 {
-                        smoothstep((cos_a - cos_half) / smooth)
-                    } else if cos_a > *cos_half {
-                        1.0
-                    } else {
-                        0.0
-                    };
-                    if mask <= 0.0 {
-                        return None;
-                    }
-                    li *= mask;
-                }
                 Some(LightSample {
-                    li,
+                    li: *intensity / (dist * dist) * mask,
                     wi,
                     dist,
                     pdf: pick,
@@ -476,12 +553,14 @@ impl Lights {
         self.dist.pmf(a.light as usize) * t * t / (cos_l * a.area)
     }
 
-    /// Area lights hit by `ray` before `tmax`: calls `f(radiance, light_pdf, t)` for each.
+    /// Area and sphere lights hit by `ray` before `tmax`: calls `f(radiance, light_pdf, t)`
+    /// for each (lights do not occlude, so every one on the way counts).
     pub fn area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
         self.area_hits_if(ray, tmax, false, f)
     }
 
-    /// [`Lights::area_hits`] for a camera ray: only the area lights visible to the camera.
+    /// [`Lights::area_hits`] for a camera ray: only the area lights visible to the camera (no
+    /// sphere lights).
     pub fn camera_area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
         self.area_hits_if(ray, tmax, true, f)
     }
@@ -522,6 +601,48 @@ impl Lights {
                     let pdf = self.dist.pmf(i) * t * t / (-denom * area);
                     f(*radiance, pdf, t);
                 }
+            }
+        }
+        if camera_ray {
+            return; // point and spot lights are never seen by the camera (Blender's default)
+        }
+        for &i in &self.sphere_indices {
+            let light = &self.lights[i];
+            let (LightKind::Point {
+                p: c,
+                intensity,
+                radius,
+            }
+            | LightKind::Spot {
+                p: c,
+                intensity,
+                radius,
+                ..
+            }) = light
+            else {
+                continue;
+            };
+            // Only where light sampling samples the sphere as a cone (else it is a point).
+            let Some(cone) = SphereCone::new(*c, *radius, ray.o) else {
+                continue;
+            };
+            let oc = ray.o - *c;
+            let b = oc.dot(ray.d);
+            let disc = b * b - (oc.dot(oc) - radius * radius);
+            if disc < 0.0 {
+                continue;
+            }
+            let t = -b - disc.sqrt();
+            if !(t > 1e-5 && t < tmax) {
+                continue;
+            }
+            let mask = light.spot_mask(oc);
+            if mask > 0.0 {
+                f(
+                    *intensity / (PI * radius * radius) * mask,
+                    self.dist.pmf(i) / cone.omega,
+                    t,
+                );
             }
         }
     }

@@ -462,3 +462,75 @@ fn smooth_glass_reflects_the_sun() {
         mean(&gd)
     );
 }
+
+#[test]
+fn sphere_light_lights_a_plane_like_a_point_and_glints_in_glass() {
+    // A point light of radius r is a sphere of radiance L = I / (π r²), I = P / 4π (Cycles). Seen
+    // from a point of the plane with the sphere wholly above its horizon it subtends a cap of
+    // projected solid angle π (r/d)² cos θ, so the irradiance is exactly I cos θ / d², as for
+    // the point: the image mean of DiffDir must equal the point light's closed form, now with
+    // light sampling over the cone plus BSDF rays hitting the sphere (MIS).
+    let w = 16u32;
+    let mut s = floor_scene([0.5, 0.5, 0.5], w);
+    let (lx, ly, lz, power, radius) = (0.3f64, 1.5f64, -0.2f64, 200.0f64, 0.6f32);
+    s.lights.push(Light::Point {
+        name: String::new(),
+        position: [lx as f32, ly as f32, lz as f32],
+        power: power as f32,
+        radius,
+        color: Color::Rgb([1.0, 1.0, 1.0]),
+    });
+    let film = render(&s, &opts(128, 1), &no_progress).unwrap();
+    let dir = film.pass("DiffDir").unwrap();
+    let (mut got, mut want) = (0.0f64, 0.0f64);
+    for y in 0..w as usize {
+        for x in 0..w as usize {
+            got += dir.get(x, y, 0) as f64;
+            for j in 0..8 {
+                for i in 0..8 {
+                    let (fx, fz) = floor_point(x as f64 + (i as f64 + 0.5) / 8.0, y as f64 + (j as f64 + 0.5) / 8.0, w);
+                    let (dx, dy, dz) = (lx - fx, ly, lz - fz);
+                    let d2 = dx * dx + dy * dy + dz * dz;
+                    want += power / (4.0 * PI) * (dy / d2.sqrt()) / d2 / PI / 64.0;
+                }
+            }
+        }
+    }
+    assert!(got.is_finite() && (got - want).abs() < 0.01 * want, "DiffDir sum {got} vs {want}");
+
+    // A smooth IOR-3 glass floor (F = 0.25 at normal incidence) seen straight down through a
+    // narrow camera at height 5, under a sphere light of radius 3 centred 10 m up: every mirror
+    // ray goes up into the sphere, so GlossDir = L = P / (4π · π r²). (The camera does not see
+    // the light, lights do not occlude.) Before, point lights were never hit: GlossDir 0.
+    let mut cam = Camera::new(8, 8, 2.0);
+    cam.position = [0.0, 5.0, 0.0];
+    cam.look_at = Some([0.0, 0.0, 0.0]);
+    cam.up = [0.0, 0.0, -1.0];
+    let mut s = Scene::new(cam);
+    s.objects.push(Object {
+        name: "glass".into(),
+        shape: Shape::Quad { size: [20.0, 20.0] },
+        transform: Transform {
+            rotate_deg: [-90.0, 0.0, 0.0],
+            ..Default::default()
+        },
+        material: Material {
+            transmission: 1.0,
+            roughness: 0.0,
+            ior: 3.0,
+            ..Default::default()
+        },
+    });
+    s.lights.push(Light::Point {
+        name: String::new(),
+        position: [0.0, 10.0, 0.0],
+        power: 1000.0,
+        radius: 3.0,
+        color: Color::Rgb([1.0, 1.0, 1.0]),
+    });
+    let film = render(&s, &opts(256, 1), &no_progress).unwrap();
+    let gd = film.pass("GlossDir").unwrap();
+    let mean = gd.data.iter().map(|v| *v as f64).sum::<f64>() / gd.data.len() as f64;
+    let expect = 1000.0 / (4.0 * PI * PI * 9.0);
+    assert!((mean - expect).abs() < 0.03 * expect, "GlossDir {mean} vs {expect}");
+}
