@@ -20,7 +20,8 @@
 //!
 //! # Units (as in Blender / Cycles)
 //! - Point light: `power` in W; radiant intensity `I = power / 4π` W/sr (times `color`).
-//!   `radius` softens shadows (Blender's `shadow_soft_size`).
+//!   `radius` (Blender's `shadow_soft_size`) makes it a sphere, as in Cycles: soft shadows, and
+//!   a disk of radiance `I / (π r²)` in reflections and refractions.
 //! - Spot light: as a point light of the same power (`I = power / 4π`), masked by the cone of
 //!   full angle `spot_size_deg` with `blend` softening its edge; Cycles does *not* renormalise
 //!   the power into the cone, and neither do we.
@@ -30,7 +31,8 @@
 //!   (Blender's Ray Visibility ▸ Camera, off by default in Blender 4/5); point, spot and sun
 //!   lights are never seen by the camera. Rays that scattered always see area lights.
 //! - Sun: `strength` is the irradiance in W/m² on a surface facing the sun; `angle_deg` its
-//!   angular diameter.
+//!   angular diameter (a cone of radiance `strength / Ω` that mirrors and glass reflect; 0 makes
+//!   it a delta light).
 //! - Emission (materials): radiance `emission_strength × emission_color` (W/m²/sr).
 //! - World: radiance `strength × color` (or × the image's texel).
 //!

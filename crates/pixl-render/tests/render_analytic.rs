@@ -496,7 +496,10 @@ fn sphere_light_lights_a_plane_like_a_point_and_glints_in_glass() {
             }
         }
     }
-    assert!(got.is_finite() && (got - want).abs() < 0.01 * want, "DiffDir sum {got} vs {want}");
+    assert!(
+        got.is_finite() && (got - want).abs() < 0.01 * want,
+        "DiffDir sum {got} vs {want}"
+    );
 
     // A smooth IOR-3 glass floor (F = 0.25 at normal incidence) seen straight down through a
     // narrow camera at height 5, under a sphere light of radius 3 centred 10 m up: every mirror
