@@ -416,14 +416,9 @@ fn sun_with_an_angle_lights_a_plane_as_its_cone_does() {
     );
 }
 
-#[test]
-fn smooth_glass_reflects_the_sun() {
-    // A smooth glass floor (IOR 3: F = ((3 − 1)/(3 + 1))² = 0.25 at normal incidence) seen
-    // straight down through a narrow camera, under a sun straight down of angular diameter 60°:
-    // every mirror-reflected camera ray (within 1° of vertical) lies in the sun's cone, so
-    // GlossDir = L = E / Ω with Ω = 2π(1 − cos 30°) — the light the sun gives a mirror. Before
-    // suns were hit by BSDF rays, smooth glass never showed the sun (GlossDir 0). The
-    // reflection is chosen with probability F per sample, so the check is on the image mean.
+/// A 20 m smooth glass floor (IOR 3: F = ((3 − 1)/(3 + 1))² = 0.25 at normal incidence) seen
+/// straight down from 5 m through an 8×8 camera of 2° (every view ray within 1° of vertical).
+fn glass_floor_seen_from_above() -> Scene {
     let mut cam = Camera::new(8, 8, 2.0);
     cam.position = [0.0, 5.0, 0.0];
     cam.look_at = Some([0.0, 0.0, 0.0]);
@@ -443,6 +438,18 @@ fn smooth_glass_reflects_the_sun() {
             ..Default::default()
         },
     });
+    s
+}
+
+#[test]
+fn smooth_glass_reflects_the_sun() {
+    // A smooth glass floor (IOR 3: F = ((3 − 1)/(3 + 1))² = 0.25 at normal incidence) seen
+    // straight down through a narrow camera, under a sun straight down of angular diameter 60°:
+    // every mirror-reflected camera ray (within 1° of vertical) lies in the sun's cone, so
+    // GlossDir = L = E / Ω with Ω = 2π(1 − cos 30°) — the light the sun gives a mirror. Before
+    // suns were hit by BSDF rays, smooth glass never showed the sun (GlossDir 0). The
+    // reflection is chosen with probability F per sample, so the check is on the image mean.
+    let mut s = glass_floor_seen_from_above();
     let strength = 2.0f64;
     s.lights.push(Light::Sun {
         name: String::new(),
@@ -505,25 +512,7 @@ fn sphere_light_lights_a_plane_like_a_point_and_glints_in_glass() {
     // narrow camera at height 5, under a sphere light of radius 3 centred 10 m up: every mirror
     // ray goes up into the sphere, so GlossDir = L = P / (4π · π r²). (The camera does not see
     // the light, lights do not occlude.) Before, point lights were never hit: GlossDir 0.
-    let mut cam = Camera::new(8, 8, 2.0);
-    cam.position = [0.0, 5.0, 0.0];
-    cam.look_at = Some([0.0, 0.0, 0.0]);
-    cam.up = [0.0, 0.0, -1.0];
-    let mut s = Scene::new(cam);
-    s.objects.push(Object {
-        name: "glass".into(),
-        shape: Shape::Quad { size: [20.0, 20.0] },
-        transform: Transform {
-            rotate_deg: [-90.0, 0.0, 0.0],
-            ..Default::default()
-        },
-        material: Material {
-            transmission: 1.0,
-            roughness: 0.0,
-            ior: 3.0,
-            ..Default::default()
-        },
-    });
+    let mut s = glass_floor_seen_from_above();
     s.lights.push(Light::Point {
         name: String::new(),
         position: [0.0, 10.0, 0.0],
