@@ -14,15 +14,16 @@
 //!   (hard edge for `blend = 0`), not renormalised to the cone.
 //! - Area: one-sided Lambertian, radiance `P·color / (π A)`, emitting along its direction; its
 //!   local X (`size`) is `normalize(d × Y)` (or +X when `d ∥ Y`), local Y is `(−d) × X`.
-//! - Sun: irradiance `strength·color` on a surface facing it; with an angular diameter > 0 a
-//!   cone of uniform radiance `E / Ω` (`Ω = 2π(1 − cos(angle/2))`, directions sampled uniformly
-//!   in it), with angle 0 a delta light of irradiance `E`.
+//! - Sun: irradiance `strength·color` on a surface facing it; with an angular diameter of at
+//!   least ~0.16° (Blender's default is 0.526°) a cone of uniform radiance `E / Ω` (`Ω = 2π(1 −
+//!   cos(angle/2))`, directions sampled uniformly in it), below that a delta light of
+//!   irradiance `E` (directions still spread over the cone).
 //! - World: radiance `strength·color` (× texel), sampled uniformly over the sphere.
 //! - Emissive triangles: two-sided, radiance = the material's emission, sampled by area.
 //!
-//! Point and spot lights without a radius, and a sun of angle 0, are invisible to camera and BSDF
+//! Point and spot lights without a radius, and a sun below ~0.16°, are invisible to camera and BSDF
 //! rays (delta lights, sampled only by next-event estimation). Area lights, sphere (point / spot
-//! with a radius) lights, emissive triangles, the world and a sun of angle > 0 are hit by BSDF
+//! with a radius) lights, emissive triangles, the world and a wider sun are hit by BSDF
 //! rays (the sun only by rays that escape the scene, as
 //! in Cycles — so smooth glass and mirrors show its glint) and combined with light sampling by
 //! MIS (power heuristic). No light is seen by camera rays except emissive triangles, the
@@ -288,12 +289,16 @@ impl Lights {
                     strength, angle_deg, ..
                 } => {
                     let cos_max = (0.5 * angle_deg.to_radians()).cos().min(1.0 - 1e-7);
-                    // Ω = 2π(1 − cos δ) = 4π sin²(δ/2), in f64: 1 − cos δ loses digits in f32.
-                    let half = 0.5 * (*angle_deg as f64).to_radians();
-                    let omega = (4.0 * std::f64::consts::PI * (0.5 * half).sin().powi(2)) as f32;
-                    if omega > 0.0 {
+                    // Ω of exactly the cone that is sampled and hit-tested (`cos ≥ cos_max`, in
+                    // f32). Below ~0.16° (1 − cos_max < 4e-6) a direction's rounding (~1e-7) is
+                    // no longer small against the cone, so such a sun stays a delta light.
+                    let one_minus = 1.0 - cos_max as f64;
+                    let omega = if one_minus >= 4e-6 {
                         sun_indices.push(lights.len());
-                    }
+                        (2.0 * std::f64::consts::PI * one_minus) as f32
+                    } else {
+                        0.0
+                    };
                     lights.push(LightKind::Sun {
                         dir,
                         irradiance: color * *strength,
@@ -525,7 +530,7 @@ impl Lights {
         Some((env.eval(d), pdf))
     }
 
-    /// Suns (of angle > 0) a ray escaping the scene along `d` sees: calls `f(radiance,
+    /// Suns with a cone (see the module docs) a ray escaping the scene along `d` sees: calls `f(radiance,
     /// light_pdf)` for each.
     pub fn sun_hits(&self, d: V3, mut f: impl FnMut(V3, f32)) {
         for &i in &self.sun_indices {

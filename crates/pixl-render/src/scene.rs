@@ -31,8 +31,8 @@
 //!   (Blender's Ray Visibility ▸ Camera, off by default in Blender 4/5); point, spot and sun
 //!   lights are never seen by the camera. Rays that scattered always see area lights.
 //! - Sun: `strength` is the irradiance in W/m² on a surface facing the sun; `angle_deg` its
-//!   angular diameter (a cone of radiance `strength / Ω` that mirrors and glass reflect; 0 makes
-//!   it a delta light).
+//!   angular diameter (a cone of radiance `strength / Ω` that mirrors and glass reflect; below
+//!   ~0.16°, e.g. 0, a delta light they do not).
 //! - Emission (materials): radiance `emission_strength × emission_color` (W/m²/sr).
 //! - World: radiance `strength × color` (or × the image's texel).
 //!
