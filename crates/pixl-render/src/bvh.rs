@@ -3,10 +3,10 @@
 //!
 //! Contract: [`Bvh::intersect`] returns the closest hit in `(tmin, tmax)` and
 //! [`Bvh::occluded`] whether any hit lies there, both as the Möller–Trumbore test
-//! [`intersect_tri`] (two-sided) over every triangle but the ray's [`Ray::skip`] would — the packet test performs the same
-//! floating-point operations in the same order per lane, so hit distances and barycentrics are
-//! bit-identical to [`intersect_tri`]'s; among triangles hit at exactly the same distance the
-//! one reported may differ. [`Hit::prim`] indexes the input slice given to [`Bvh::build`]
+//! [`intersect_tri`] (two-sided) over every triangle but the ray's [`Ray::skip`] would — the
+//! packet test performs the same floating-point operations in the same order per lane, so hit
+//! distances and barycentrics are bit-identical to [`intersect_tri`]'s; among triangles hit at
+//! exactly the same distance the one reported may differ. [`Hit::prim`] indexes the input slice given to [`Bvh::build`]
 //! after reordering with the permutation it returns.
 //!
 //! Layout, chosen by measurement on the ~500 k-triangle depth-mesh benchmark (see

@@ -38,10 +38,9 @@ pub struct MaterialData {
     pub metallic_tex: Option<Texture>,
     pub transmission: f32,
     pub ior: f32,
-    pub specular_level: f32,
     pub emission: V3,
-    /// Constants of the dielectric specular coat: must be `Coat::new(ior, specular_level)`
-    /// ([`resolve_material`] sets it; set it again if you change either field).
+    /// The dielectric specular coat, from the scene material's IOR and specular IOR level: must
+    /// be `Coat::new(ior, level)` ([`resolve_material`] builds it; rebuild it if `ior` changes).
     pub coat: Coat,
 }
 
@@ -194,7 +193,6 @@ pub fn resolve_material(scene: &Scene, m: &crate::scene::Material) -> Result<Mat
         metallic_tex: load(&m.metallic_texture, false)?,
         transmission: m.transmission,
         ior: m.ior,
-        specular_level: m.specular_ior_level,
         emission: V3::from_arr(m.emission_color.rgb()) * m.emission_strength,
         coat: Coat::new(m.ior, m.specular_ior_level),
     })

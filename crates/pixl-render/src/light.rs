@@ -627,10 +627,6 @@ impl Lights {
             else {
                 continue;
             };
-            // Only where light sampling samples the sphere as a cone (else it is a point).
-            let Some(cone) = SphereCone::new(*c, *radius, ray.o) else {
-                continue;
-            };
             let oc = ray.o - *c;
             let b = oc.dot(ray.d);
             let disc = b * b - (oc.dot(oc) - radius * radius);
@@ -641,6 +637,10 @@ impl Lights {
             if !(t > 1e-5 && t < tmax) {
                 continue;
             }
+            // Only where light sampling samples the sphere as a cone (else it is a point).
+            let Some(cone) = SphereCone::new(*c, *radius, ray.o) else {
+                continue;
+            };
             let mask = light.spot_mask(oc);
             if mask > 0.0 {
                 f(

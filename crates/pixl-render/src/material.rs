@@ -306,11 +306,6 @@ impl Bsdf {
         self.p_diff + self.p_spec > 0.0
     }
 
-    /// The geometric normal on the side of `wo`.
-    pub fn ng(&self) -> V3 {
-        self.ng
-    }
-
     /// Evaluates the non-delta lobes for the incident direction `wi` (world, unit).
     pub fn eval(&self, wi_world: V3) -> BsdfEval {
         let wi = self.frame.to_local(wi_world);
@@ -427,7 +422,6 @@ mod tests {
             metallic_tex: None,
             transmission: 0.0,
             ior: 1.5,
-            specular_level,
             emission: V3::ZERO,
             coat: Coat::new(1.5, specular_level),
         }

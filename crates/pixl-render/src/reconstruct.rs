@@ -3,9 +3,9 @@
 //! discontinuities by [`MeshOptions`]' defaults; reaching the frame's edges) and its `DiffCol`
 //! pass the albedo texture — the stand-ins for a monocular depth and albedo estimator. One
 //! caller-given material (the "estimated" roughness, specular, metallic) covers the whole mesh;
-//! the world is kept, lights are left to the caller. (`DiffCol` is the diffuse closure's albedo, which Cycles' Principled
-//! v2 attenuates by the specular coat's reflectance; a template with a specular coat attenuates
-//! it once more.)
+//! the world is kept, lights are left to the caller. (`DiffCol` is the diffuse closure's
+//! albedo, which Cycles' Principled v2 attenuates by the specular coat's reflectance; a template
+//! with a specular coat attenuates it once more.)
 //!
 //! [`coarse_scene_textured`] takes the albedo texture from the caller instead — e.g. the photo
 //! itself, as `pixl reconstruct` does when no albedo map is given: the shading and shadows of the
