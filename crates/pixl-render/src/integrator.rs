@@ -24,7 +24,7 @@ use crate::error::{RenderError, Result};
 use crate::film::{Film, PixelSum};
 use crate::geometry::{Geometry, SurfaceHit};
 use crate::light::Lights;
-use crate::material::{Bsdf, BsdfEval};
+use crate::material::{Bsdf, BsdfEval, BsdfSample};
 use crate::math::V3;
 use crate::sampling::power_heuristic;
 use crate::scene::Scene;
@@ -122,31 +122,18 @@ impl Renderer {
         Film::from_sums(w, h, self.opts.spp, &sums)
     }
 
-    /// The sums of all samples of pixel `(x, y)`. The camera rays of up to [`PACKET`]
-    /// samples are traced together (one shared BVH traversal); each sample still draws from
-    /// its own stream in the same order, so the result equals tracing them one by one.
+    /// The sums of all samples of pixel `(x, y)`. Up to [`PACKET`] samples advance together,
+    /// one path vertex at a time ([`Renderer::trace_packet`]), so their camera, shadow and
+    /// bounce rays can share BVH traversals; each sample still draws from its own stream in
+    /// the same order, so the result equals tracing them one by one.
     pub fn render_pixel(&self, x: usize, y: usize) -> PixelSum {
         let mut acc = PixelSum::default();
         let pixel = (y * self.width as usize + x) as u64;
         let spp = self.opts.spp as usize;
-        let far = [f32::INFINITY; PACKET];
-        let mut first = [None; PACKET];
         for s0 in (0..spp).step_by(PACKET) {
             let n = PACKET.min(spp - s0);
-            // Streams and camera rays for the `n` samples of this packet only (a low-spp render
-            // would otherwise pay for all PACKET lanes).
-            let mut rngs: [Rng; PACKET] = std::array::from_fn(|_| Rng::from_state([0; 4]));
-            let mut rays = [Ray::new(V3::ZERO, V3::ZERO); PACKET];
-            for j in 0..n {
-                let rng = &mut rngs[j];
-                *rng = Rng::for_stream(self.opts.seed, &[pixel, (s0 + j) as u64]);
-                let (u, v) = (rng.f32(), rng.f32());
-                rays[j] = self.camera.ray(x as f32 + u, y as f32 + v);
-            }
-            self.geom.intersect_packet(&rays[..n], 0.0, &far[..n], &mut first[..n]);
-            for j in 0..n {
-                let sample = self.trace(&rays[j], first[j], &mut rngs[j]);
-                acc.add(&sample);
+            for sample in &self.trace_packet(x, y, pixel, s0, n)[..n] {
+                acc.add(sample);
             }
         }
         acc
@@ -160,134 +147,297 @@ impl Renderer {
         Ray::leaving(hit.prim, hit.p, wi)
     }
 
-    /// One camera path, given the camera ray's closest hit `first`: its contribution to
-    /// every pass.
-    fn trace(&self, camera_ray: &Ray, first: Option<SurfaceHit>, rng: &mut Rng) -> PixelSum {
-        let mut s = PixelSum::default();
+    /// Samples `s0..s0 + n` (`n ≤ PACKET`) of pixel `(x, y)`: each one camera path, its
+    /// contribution to every pass (lanes `n..` are left empty).
+    ///
+    /// The paths run in lockstep, one vertex at a time: every live path picks its light
+    /// sample, then all their shadow rays are traced (as one packet when there are enough of
+    /// them), then every path samples its BSDF, then all continuation rays are traced. Per
+    /// path, the random numbers, the estimator and the order of its float operations are those
+    /// of a path traced alone.
+    fn trace_packet(&self, x: usize, y: usize, pixel: u64, s0: usize, n: usize) -> [PixelSum; PACKET] {
         let geom = &self.geom;
+        let lights = &self.lights;
+        let mut sums = [PixelSum::default(); PACKET];
+        // Streams and camera rays for the `n` samples of this packet only (a low-spp render
+        // would otherwise pay for all PACKET lanes).
+        let mut rngs: [Rng; PACKET] = std::array::from_fn(|_| Rng::from_state([0; 4]));
+        let mut rays = [Ray::new(V3::ZERO, V3::ZERO); PACKET];
+        for j in 0..n {
+            let rng = &mut rngs[j];
+            *rng = Rng::for_stream(self.opts.seed, &[pixel, (s0 + j) as u64]);
+            let (u, v) = (rng.f32(), rng.f32());
+            rays[j] = self.camera.ray(x as f32 + u, y as f32 + v);
+        }
+        let far = [f32::INFINITY; PACKET];
+        let mut hits = [None; PACKET];
+        geom.intersect_packet(&rays[..n], 0.0, &far[..n], &mut hits[..n]);
+        let mut paths: [Option<Path>; PACKET] = std::array::from_fn(|_| None);
+        for j in 0..n {
+            paths[j] = self.camera_vertex(&rays[j], hits[j], &mut sums[j]);
+        }
+        let max_b = self.opts.max_bounces;
+        // Per lane: the light the pending shadow ray carries, if unoccluded.
+        let mut pending: [Option<Nee>; PACKET] = [None; PACKET];
+        loop {
+            // Russian roulette, then next-event estimation: light samples and shadow rays.
+            let mut shadow = Batch::new();
+            for j in 0..n {
+                let Some(path) = &mut paths[j] else { continue };
+                let rng = &mut rngs[j];
+                if path.depth >= 3 {
+                    let q = path.beta.max_comp().min(0.95);
+                    if !(rng.f32() < q) {
+                        paths[j] = None;
+                        continue;
+                    }
+                    path.beta = path.beta / q;
+                }
+                if path.bsdf.has_smooth() && !lights.is_empty() {
+                    let (up, u1, u2) = (rng.f32(), rng.f32(), rng.f32());
+                    if let Some(ls) = lights.sample(geom, path.hit.p, up, u1, u2) {
+                        let e: BsdfEval = path.bsdf.eval(ls.wi);
+                        if !e.total().is_zero() && ls.pdf > 0.0 {
+                            let tmax = if ls.dist.is_finite() {
+                                ls.dist * (1.0 - 1e-3)
+                            } else {
+                                f32::INFINITY
+                            };
+                            let w = if ls.delta { 1.0 } else { power_heuristic(ls.pdf, e.pdf) };
+                            pending[j] = Some(Nee {
+                                e,
+                                scale: ls.li * (w / ls.pdf),
+                            });
+                            shadow.push(j, Self::spawn(&path.hit, ls.wi), tmax);
+                        }
+                    }
+                }
+            }
+            let occluded = shadow.occluded(geom);
+            // Light of unoccluded shadow rays, then the BSDF sample of each path.
+            let mut bounce = Batch::new();
+            let mut samples: [Option<BsdfSample>; PACKET] = [None; PACKET];
+            for j in 0..n {
+                let Some(path) = &mut paths[j] else { continue };
+                if let Some(nee) = pending[j].take() {
+                    if !occluded[j] {
+                        let (e, scale) = (nee.e, nee.scale);
+                        if path.depth == 0 {
+                            let parts = [e.diffuse, e.glossy, e.transmission];
+                            let s = &mut sums[j];
+                            for k in 0..3 {
+                                s.dir[k] += parts[k] * scale;
+                            }
+                            s.combined += e.total() * scale;
+                        } else {
+                            let l = path.beta * e.total() * scale;
+                            add_path_light(&mut sums[j], &path.frac, l, path.depth);
+                        }
+                    }
+                }
+                let rng = &mut rngs[j];
+                let (ul, u1, u2) = (rng.f32(), rng.f32(), rng.f32());
+                let Some(bs) = path.bsdf.sample(ul, u1, u2) else {
+                    paths[j] = None;
+                    continue;
+                };
+                let wt = bs.weight.total();
+                if path.depth == 0 {
+                    path.frac = [
+                        bs.weight.diffuse.safe_div(wt),
+                        bs.weight.glossy.safe_div(wt),
+                        bs.weight.transmission.safe_div(wt),
+                    ];
+                }
+                path.beta *= wt;
+                if !path.beta.is_finite() || path.beta.is_zero() {
+                    paths[j] = None;
+                    continue;
+                }
+                bounce.push(j, Self::spawn(&path.hit, bs.wi), f32::INFINITY);
+                samples[j] = Some(bs);
+            }
+            if bounce.len == 0 {
+                break;
+            }
+            let next = bounce.intersect(geom);
+            // Emission found by the continuation rays, and the next vertex.
+            for j in 0..n {
+                let (Some(path), Some(bs)) = (&mut paths[j], samples[j]) else {
+                    continue;
+                };
+                let ray = &bounce.rays[bounce.slot[j] as usize];
+                let s = &mut sums[j];
+                let next = next[j];
+                let t_next = next.map(|h| h.t).unwrap_or(f32::INFINITY);
+                let mis = |light_pdf: f32| {
+                    if bs.delta {
+                        1.0
+                    } else {
+                        power_heuristic(bs.pdf, light_pdf)
+                    }
+                };
+                let (beta, frac, depth) = (path.beta, path.frac, path.depth);
+                lights.area_hits(ray, t_next, |l, pdf, _| {
+                    add_path_light(s, &frac, beta * l * mis(pdf), depth);
+                });
+                let Some(h2) = next else {
+                    if let Some((le, pdf)) = lights.env_hit(ray.d) {
+                        add_path_light(s, &frac, beta * le * mis(pdf), depth);
+                    }
+                    lights.sun_hits(ray.d, |l, pdf| {
+                        add_path_light(s, &frac, beta * l * mis(pdf), depth);
+                    });
+                    paths[j] = None;
+                    continue;
+                };
+                let m2 = &geom.materials[geom.attrs[h2.prim as usize].material as usize];
+                if m2.emission.max_comp() > 0.0 {
+                    let cos_l = ray.d.dot(h2.ng).abs();
+                    let pdf = lights.tri_pdf(geom, h2.prim, h2.t, cos_l);
+                    add_path_light(s, &frac, beta * m2.emission * mis(pdf), depth);
+                }
+                if depth >= max_b {
+                    paths[j] = None;
+                    continue;
+                }
+                path.depth += 1;
+                path.hit = h2;
+                path.bsdf = Bsdf::new(m2, &h2, -ray.d);
+                if path.bsdf.is_black() {
+                    paths[j] = None;
+                }
+            }
+        }
+        sums
+    }
+
+    /// What the camera ray of one sample sees before any bounce — lights in view, the world,
+    /// the first surface's emission, depth, normal and colour passes — written to `s`; the path
+    /// state at the first hit, or `None` when nothing is hit or it cannot scatter.
+    fn camera_vertex(&self, camera_ray: &Ray, first: Option<SurfaceHit>, s: &mut PixelSum) -> Option<Path> {
         let lights = &self.lights;
         let t_first = first.map(|h| h.t).unwrap_or(f32::INFINITY);
         lights.camera_area_hits(camera_ray, t_first, |l, _, _| {
             s.emit += l;
             s.combined += l;
         });
-        let Some(mut hit) = first else {
+        let Some(hit) = first else {
             if let Some((le, _)) = lights.env_hit(camera_ray.d) {
                 s.env += le;
                 s.combined += le;
             }
-            return s;
+            return None;
         };
         s.depth = self.camera.z_depth(hit.p);
         s.normal = hit.ns;
         s.normal_n = 1;
-        let mut wo = -camera_ray.d;
-        let mut mat = &geom.materials[geom.attrs[hit.prim as usize].material as usize];
+        let geom = &self.geom;
+        let mat = &geom.materials[geom.attrs[hit.prim as usize].material as usize];
         if mat.emission.max_comp() > 0.0 {
             s.emit += mat.emission;
             s.combined += mat.emission;
         }
-        let mut bsdf = Bsdf::new(mat, &hit, wo);
+        let bsdf = Bsdf::new(mat, &hit, -camera_ray.d);
         s.col = bsdf.colors;
-        // Per-channel share of each lobe in the path throughput after the first bounce.
-        let mut frac = [V3::ZERO; 3];
-        let mut beta = V3::ONE;
-        let max_b = self.opts.max_bounces;
-        let mut depth = 0u32;
-        loop {
-            if depth >= 3 {
-                let q = beta.max_comp().min(0.95);
-                if !(rng.f32() < q) {
-                    break;
-                }
-                beta = beta / q;
-            }
-            // Next-event estimation.
-            if bsdf.has_smooth() && !lights.is_empty() {
-                let (up, u1, u2) = (rng.f32(), rng.f32(), rng.f32());
-                if let Some(ls) = lights.sample(geom, hit.p, up, u1, u2) {
-                    let e: BsdfEval = bsdf.eval(ls.wi);
-                    let f = e.total();
-                    if !f.is_zero() && ls.pdf > 0.0 {
-                        let ray = Self::spawn(&hit, ls.wi);
-                        let tmax = if ls.dist.is_finite() {
-                            ls.dist * (1.0 - 1e-3)
-                        } else {
-                            f32::INFINITY
-                        };
-                        if !geom.occluded(&ray, 0.0, tmax) {
-                            let w = if ls.delta { 1.0 } else { power_heuristic(ls.pdf, e.pdf) };
-                            let scale = ls.li * (w / ls.pdf);
-                            if depth == 0 {
-                                let parts = [e.diffuse, e.glossy, e.transmission];
-                                for k in 0..3 {
-                                    s.dir[k] += parts[k] * scale;
-                                }
-                                s.combined += f * scale;
-                            } else {
-                                let l = beta * f * scale;
-                                add_path_light(&mut s, &frac, l, depth);
-                            }
-                        }
-                    }
-                }
-            }
-            // Continue the path.
-            let (ul, u1, u2) = (rng.f32(), rng.f32(), rng.f32());
-            let Some(bs) = bsdf.sample(ul, u1, u2) else { break };
-            let wt = bs.weight.total();
-            if depth == 0 {
-                frac = [
-                    bs.weight.diffuse.safe_div(wt),
-                    bs.weight.glossy.safe_div(wt),
-                    bs.weight.transmission.safe_div(wt),
-                ];
-            }
-            beta *= wt;
-            if !beta.is_finite() || beta.is_zero() {
-                break;
-            }
-            let ray = Self::spawn(&hit, bs.wi);
-            let next = geom.intersect(&ray, 0.0, f32::INFINITY);
-            let t_next = next.map(|h| h.t).unwrap_or(f32::INFINITY);
-            let mis = |light_pdf: f32| {
-                if bs.delta {
-                    1.0
-                } else {
-                    power_heuristic(bs.pdf, light_pdf)
-                }
-            };
-            lights.area_hits(&ray, t_next, |l, pdf, _| {
-                add_path_light(&mut s, &frac, beta * l * mis(pdf), depth);
-            });
-            let Some(h2) = next else {
-                if let Some((le, pdf)) = lights.env_hit(ray.d) {
-                    add_path_light(&mut s, &frac, beta * le * mis(pdf), depth);
-                }
-                lights.sun_hits(ray.d, |l, pdf| {
-                    add_path_light(&mut s, &frac, beta * l * mis(pdf), depth);
-                });
-                break;
-            };
-            let m2 = &geom.materials[geom.attrs[h2.prim as usize].material as usize];
-            if m2.emission.max_comp() > 0.0 {
-                let cos_l = ray.d.dot(h2.ng).abs();
-                let pdf = lights.tri_pdf(geom, h2.prim, h2.t, cos_l);
-                add_path_light(&mut s, &frac, beta * m2.emission * mis(pdf), depth);
-            }
-            if depth >= max_b {
-                break;
-            }
-            depth += 1;
-            hit = h2;
-            mat = m2;
-            wo = -ray.d;
-            bsdf = Bsdf::new(mat, &hit, wo);
-            if bsdf.is_black() {
-                break;
+        Some(Path {
+            hit,
+            bsdf,
+            frac: [V3::ZERO; 3],
+            beta: V3::ONE,
+            depth: 0,
+        })
+    }
+}
+
+/// The state of one camera path at its current vertex.
+struct Path {
+    hit: SurfaceHit,
+    bsdf: Bsdf,
+    /// Per-channel share of each lobe in the path throughput after the first bounce.
+    frac: [V3; 3],
+    beta: V3,
+    /// The vertex's bounce count (0 = the camera hit).
+    depth: u32,
+}
+
+/// Light a shadow ray brings if unoccluded: the BSDF evaluation and `Li · w / pdf`.
+#[derive(Clone, Copy)]
+struct Nee {
+    e: BsdfEval,
+    scale: V3,
+}
+
+/// Fewest rays of a batch traced as one packet; smaller batches go one by one (a packet's
+/// cost depends little on how many of its lanes are live). Measured on the bench scene
+/// (BENCHMARKS.md, session 15).
+const MIN_SHADOW_PACKET: usize = 4;
+const MIN_BOUNCE_PACKET: usize = 12;
+
+/// The rays of some lanes of a packet of paths, compacted, for one BVH query.
+struct Batch {
+    rays: [Ray; PACKET],
+    tmax: [f32; PACKET],
+    /// Lane of each ray, and slot of each lane's ray.
+    lane: [u8; PACKET],
+    slot: [u8; PACKET],
+    len: usize,
+}
+
+impl Batch {
+    fn new() -> Batch {
+        Batch {
+            rays: [Ray::new(V3::ZERO, V3::ZERO); PACKET],
+            tmax: [0.0; PACKET],
+            lane: [0; PACKET],
+            slot: [0; PACKET],
+            len: 0,
+        }
+    }
+
+    fn push(&mut self, lane: usize, ray: Ray, tmax: f32) {
+        self.rays[self.len] = ray;
+        self.tmax[self.len] = tmax;
+        self.lane[self.len] = lane as u8;
+        self.slot[lane] = self.len as u8;
+        self.len += 1;
+    }
+
+    /// Per lane, whether its ray is occluded (`false` for lanes without a ray).
+    fn occluded(&self, geom: &Geometry) -> [bool; PACKET] {
+        let mut by_slot = [false; PACKET];
+        let k = self.len;
+        if k >= MIN_SHADOW_PACKET {
+            geom.bvh
+                .occluded_packet(&self.rays[..k], 0.0, &self.tmax[..k], &mut by_slot[..k]);
+        } else {
+            for i in 0..k {
+                by_slot[i] = geom.occluded(&self.rays[i], 0.0, self.tmax[i]);
             }
         }
-        s
+        let mut out = [false; PACKET];
+        for i in 0..k {
+            out[self.lane[i] as usize] = by_slot[i];
+        }
+        out
+    }
+
+    /// Per lane, the closest hit of its ray (`None` for lanes without a ray).
+    fn intersect(&self, geom: &Geometry) -> [Option<SurfaceHit>; PACKET] {
+        let mut by_slot = [None; PACKET];
+        let k = self.len;
+        if k >= MIN_BOUNCE_PACKET {
+            geom.intersect_packet(&self.rays[..k], 0.0, &self.tmax[..k], &mut by_slot[..k]);
+        } else {
+            for i in 0..k {
+                by_slot[i] = geom.intersect(&self.rays[i], 0.0, self.tmax[i]);
+            }
+        }
+        let mut out = [None; PACKET];
+        for i in 0..k {
+            out[self.lane[i] as usize] = by_slot[i];
+        }
+        out
     }
 }
 

@@ -27,6 +27,9 @@
 //! bring their own vector types or their own ray/primitive traits.
 use crate::math::V3;
 
+#[cfg(target_arch = "x86_64")]
+mod packet_avx2;
+
 /// A triangle as stored for intersection: one vertex and two edges.
 #[derive(Clone, Copy, Debug)]
 pub struct Tri {
@@ -775,7 +778,7 @@ impl Bvh {
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     fn traverse_packet_avx2<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
-        self.traverse_packet_body::<ANY>(start, act, p, tmin)
+        self.traverse_packet_simd::<ANY>(start, act, p, tmin)
     }
 
     #[inline(never)]

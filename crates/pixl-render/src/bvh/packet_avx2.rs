@@ -1,0 +1,277 @@
+//! Packet traversal written with AVX2 intrinsics: the algorithm of
+//! [`Bvh::traverse_packet_body`] (a node is visited while any active lane enters one of its
+//! children, children nearest-entry first, lanes retire at their first hit for any-hit
+//! queries), with each child box and each leaf triangle tested against the 16 lanes as two
+//! 8-wide vectors instead of lane loops.
+//!
+//! Contract: the same per-lane results as the portable body — every lane's box and triangle
+//! tests are the same IEEE operations in the same order (sub, mul, add and div only; no FMA,
+//! no reciprocal estimates; `maxps`/`minps` operand order chosen so that NaN keeps the
+//! accumulated slab bound exactly as the portable `if t0x > t0 { t0x } else { t0 }`), so hit
+//! distances and barycentrics are bit-identical to [`super::intersect_tri`]'s. A half of 8
+//! lanes without active rays is skipped, so packets of up to 8 rays cost about half.
+//!
+//! Why: the portable body's lane loops compile to per-lane selects and bit gathers (~120 ns per
+//! node on the benchmark); this form tests a node's four children against 16 rays in ~40 ns,
+//! which makes packets of a pixel's divergent bounce and shadow rays cheaper than tracing them
+//! one by one (BENCHMARKS.md, session 15).
+use super::{Bvh, RayPack, Tri4, EMPTY, LEAF, LEAF_COUNT_SHIFT, LEAF_INDEX_MASK, PACKET, STACK};
+use std::arch::x86_64::*;
+
+/// Lanes per vector; a packet is `HALVES` vectors.
+const W: usize = 8;
+const HALVES: usize = PACKET / W;
+
+/// Lanes `8h..8h+8` of a 16-lane row.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn ld(a: &[f32; PACKET], h: usize) -> __m256 {
+    let s = &a[W * h..W * h + W];
+    // SAFETY: `s` is a slice of exactly 8 initialised f32 (bounds-checked above); `loadu`
+    // has no alignment requirement.
+    unsafe { _mm256_loadu_ps(s.as_ptr()) }
+}
+
+#[inline]
+#[target_feature(enable = "avx2")]
+fn st(a: &mut [f32; PACKET], h: usize, v: __m256) {
+    let s = &mut a[W * h..W * h + W];
+    // SAFETY: as in `ld`, for a mutable slice of exactly 8 f32.
+    unsafe { _mm256_storeu_ps(s.as_mut_ptr(), v) }
+}
+
+#[inline]
+#[target_feature(enable = "avx2")]
+fn ld_u32(a: &[u32; PACKET], h: usize) -> __m256i {
+    let s = &a[W * h..W * h + W];
+    // SAFETY: `s` is exactly 8 initialised u32 (32 bytes); `loadu` is unaligned.
+    unsafe { _mm256_loadu_si256(s.as_ptr().cast()) }
+}
+
+/// The lanes of half `h` set in bit mask `act`, as an all-ones / all-zeros vector mask.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lane_mask(act: u32, h: usize) -> __m256 {
+    let bits = _mm256_set1_epi32(((act >> (W * h)) & 0xff) as i32);
+    let sel = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    _mm256_castsi256_ps(_mm256_cmpeq_epi32(_mm256_and_si256(bits, sel), sel))
+}
+
+/// The smallest of 8 floats (none NaN).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn hmin(v: __m256) -> f32 {
+    let x = _mm256_min_ps(v, _mm256_permute2f128_ps::<1>(v, v));
+    let x = _mm256_min_ps(x, _mm256_shuffle_ps::<0b01_00_11_10>(x, x));
+    let x = _mm256_min_ps(x, _mm256_shuffle_ps::<0b10_11_00_01>(x, x));
+    _mm256_cvtss_f32(x)
+}
+
+/// The largest of 8 unsigned integers.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn hmax_u32(v: __m256i) -> u32 {
+    let x = _mm256_max_epu32(v, _mm256_permute2x128_si256::<1>(v, v));
+    let x = _mm256_max_epu32(x, _mm256_shuffle_epi32::<0b01_00_11_10>(x));
+    let x = _mm256_max_epu32(x, _mm256_shuffle_epi32::<0b10_11_00_01>(x));
+    _mm256_cvtsi256_si32(x) as u32
+}
+
+impl Bvh {
+    /// [`Bvh::traverse_packet_body`] with AVX2 intrinsics (see the module header).
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    pub(super) fn traverse_packet_simd<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
+        // Per half and axis: lanes whose direction is negative (near plane = the box's `hi`).
+        let zero = _mm256_setzero_ps();
+        let neg: [[__m256; 3]; HALVES] =
+            std::array::from_fn(|h| std::array::from_fn(|a| _mm256_cmp_ps::<_CMP_LT_OQ>(ld(&p.inv[a], h), zero)));
+        let slack = _mm256_set1_ps(1.000_000_2);
+        let inf = _mm256_set1_ps(f32::INFINITY);
+        let mut stack_c = [0u32; STACK];
+        let mut stack_m = [0u32; STACK];
+        let mut stack_t = [0u32; STACK];
+        let mut sp = 0usize;
+        let (mut cur, mut act) = (start, act);
+        loop {
+            if ANY {
+                act &= !p.found;
+            }
+            if act != 0 && cur & LEAF == 0 {
+                let n = &self.nodes[cur as usize];
+                let actv = [lane_mask(act, 0), lane_mask(act, 1)];
+                let mut cm = [0u32; 4];
+                let mut ct = [u32::MAX; 4];
+                for c in 0..4 {
+                    let b = |row: usize| _mm256_set1_ps(n.b[row][c]);
+                    let (lx, ly, lz, hx, hy, hz) = (b(0), b(1), b(2), b(3), b(4), b(5));
+                    let mut m = 0u32;
+                    let mut entry = inf;
+                    for h in 0..HALVES {
+                        if (act >> (W * h)) & 0xff == 0 {
+                            continue;
+                        }
+                        let slab = |lo: __m256, hi: __m256, a: usize| {
+                            let (o, inv) = (ld(&p.o[a], h), ld(&p.inv[a], h));
+                            let a0 = _mm256_mul_ps(_mm256_sub_ps(lo, o), inv);
+                            let a1 = _mm256_mul_ps(_mm256_sub_ps(hi, o), inv);
+                            (_mm256_blendv_ps(a0, a1, neg[h][a]), _mm256_blendv_ps(a1, a0, neg[h][a]))
+                        };
+                        let (t0x, t1x) = slab(lx, hx, 0);
+                        let (t0y, t1y) = slab(ly, hy, 1);
+                        let (t0z, t1z) = slab(lz, hz, 2);
+                        // `maxps(a, b)` is `a > b ? a : b`: a NaN `a` keeps `b`, the slab stays open.
+                        let t0 = _mm256_max_ps(t0z, _mm256_max_ps(t0y, _mm256_max_ps(t0x, zero)));
+                        let t1 = _mm256_min_ps(t1z, _mm256_min_ps(t1y, _mm256_min_ps(t1x, ld(&p.tmax, h))));
+                        let hit = _mm256_and_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(t0, _mm256_mul_ps(t1, slack)), actv[h]);
+                        m |= (_mm256_movemask_ps(hit) as u32) << (W * h);
+                        if !ANY {
+                            entry = _mm256_min_ps(entry, _mm256_blendv_ps(inf, t0, hit));
+                        }
+                    }
+                    cm[c] = m;
+                    if !ANY && m != 0 {
+                        // Entry distances are ≥ +0, so their bits order as the floats do.
+                        ct[c] = hmin(entry).to_bits();
+                    }
+                }
+                // Hit children, nearest first (any-hit: in slot order).
+                let mut order = [0usize; 4];
+                let mut k = 0;
+                for c in 0..4 {
+                    if cm[c] != 0 {
+                        let mut i = k;
+                        while !ANY && i > 0 && ct[order[i - 1]] > ct[c] {
+                            order[i] = order[i - 1];
+                            i -= 1;
+                        }
+                        order[i] = c;
+                        k += 1;
+                    }
+                }
+                if k > 0 {
+                    for j in (1..k).rev() {
+                        let c = order[j];
+                        if sp < STACK {
+                            self.prefetch(n.child[c]);
+                            stack_c[sp] = n.child[c];
+                            stack_m[sp] = cm[c];
+                            stack_t[sp] = ct[c];
+                            sp += 1;
+                        } else {
+                            self.traverse_packet_deep::<ANY>(n.child[c], cm[c], p, tmin);
+                        }
+                    }
+                    cur = n.child[order[0]];
+                    act = cm[order[0]];
+                    continue;
+                }
+            } else if act != 0 && cur != EMPTY {
+                let first = (cur & LEAF_INDEX_MASK) as usize;
+                let count = ((cur & !LEAF) >> LEAF_COUNT_SHIFT) as usize + 1;
+                for (pi, pk) in self.packets[first..first + count].iter().enumerate() {
+                    for l in 0..4 {
+                        if pk.prim[l] == u32::MAX {
+                            break;
+                        }
+                        let mut m = tri_lanes(pk, l, p, tmin, act);
+                        if m != 0 {
+                            p.found |= m;
+                            while m != 0 {
+                                let r = m.trailing_zeros() as usize;
+                                m &= m - 1;
+                                p.pk[r] = (first + pi) as u32;
+                                p.lane[r] = l as u32;
+                            }
+                        }
+                    }
+                }
+            }
+            // Pop the next entry that can still hold a closer hit for one of its lanes.
+            loop {
+                if sp == 0 {
+                    return;
+                }
+                sp -= 1;
+                let m = stack_m[sp];
+                if ANY {
+                    if m & !p.found != 0 {
+                        cur = stack_c[sp];
+                        act = m;
+                        break;
+                    }
+                    continue;
+                }
+                // Farthest limit (as bits, as the portable body compares them) among the
+                // entry's lanes.
+                let mut far = _mm256_setzero_si256();
+                for h in 0..HALVES {
+                    let lanes = _mm256_castps_si256(lane_mask(m, h));
+                    let bits = _mm256_castps_si256(ld(&p.tmax, h));
+                    far = _mm256_max_epu32(far, _mm256_and_si256(bits, lanes));
+                }
+                if stack_t[sp] <= hmax_u32(far) {
+                    cur = stack_c[sp];
+                    act = m;
+                    break;
+                }
+            }
+        }
+    }
+}
+
+/// Lane `l` of packet `pk` against every ray of `p` active in `act` (the operations of
+/// [`super::intersect_tri`] in the same order); lanes hit closer than their current limit get
+/// the hit recorded (distance, barycentrics) and are returned as a mask.
+#[inline]
+#[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+fn tri_lanes(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
+    let s = |v: f32| _mm256_set1_ps(v);
+    let (e1x, e1y, e1z) = (s(pk.e1[0][l]), s(pk.e1[1][l]), s(pk.e1[2][l]));
+    let (e2x, e2y, e2z) = (s(pk.e2[0][l]), s(pk.e2[1][l]), s(pk.e2[2][l]));
+    let (p0x, p0y, p0z) = (s(pk.p0[0][l]), s(pk.p0[1][l]), s(pk.p0[2][l]));
+    let prim = _mm256_set1_epi32(pk.prim[l] as i32);
+    let (one, zero, tiny, tminv) = (s(1.0), s(0.0), s(1e-20), s(tmin));
+    let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+    let (mul, sub, add) = (_mm256_mul_ps, _mm256_sub_ps, _mm256_add_ps);
+    let mut out = 0u32;
+    for h in 0..HALVES {
+        if (act >> (W * h)) & 0xff == 0 {
+            continue;
+        }
+        let (dx, dy, dz) = (ld(&p.d[0], h), ld(&p.d[1], h), ld(&p.d[2], h));
+        let (ox, oy, oz) = (ld(&p.o[0], h), ld(&p.o[1], h), ld(&p.o[2], h));
+        let px = sub(mul(dy, e2z), mul(dz, e2y));
+        let py = sub(mul(dz, e2x), mul(dx, e2z));
+        let pz = sub(mul(dx, e2y), mul(dy, e2x));
+        let det = add(add(mul(e1x, px), mul(e1y, py)), mul(e1z, pz));
+        let inv = _mm256_div_ps(one, det);
+        let (sx, sy, sz) = (sub(ox, p0x), sub(oy, p0y), sub(oz, p0z));
+        let u = mul(add(add(mul(sx, px), mul(sy, py)), mul(sz, pz)), inv);
+        let qx = sub(mul(sy, e1z), mul(sz, e1y));
+        let qy = sub(mul(sz, e1x), mul(sx, e1z));
+        let qz = sub(mul(sx, e1y), mul(sy, e1x));
+        let v = mul(add(add(mul(dx, qx), mul(dy, qy)), mul(dz, qz)), inv);
+        let tt = mul(add(add(mul(e2x, qx), mul(e2y, qy)), mul(e2z, qz)), inv);
+        let tmax = ld(&p.tmax, h);
+        let and = _mm256_and_ps;
+        let mut ok = _mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_and_ps(det, abs_mask), tiny);
+        ok = and(ok, _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero));
+        ok = and(ok, _mm256_cmp_ps::<_CMP_LE_OQ>(u, one));
+        ok = and(ok, _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero));
+        ok = and(ok, _mm256_cmp_ps::<_CMP_LE_OQ>(add(u, v), one));
+        ok = and(ok, _mm256_cmp_ps::<_CMP_GT_OQ>(tt, tminv));
+        ok = and(ok, _mm256_cmp_ps::<_CMP_LT_OQ>(tt, tmax));
+        ok = and(ok, lane_mask(act, h));
+        let same = _mm256_castsi256_ps(_mm256_cmpeq_epi32(prim, ld_u32(&p.skip, h)));
+        ok = _mm256_andnot_ps(same, ok);
+        let bits = _mm256_movemask_ps(ok) as u32;
+        if bits != 0 {
+            st(&mut p.tmax, h, _mm256_blendv_ps(tmax, tt, ok));
+            let (b1, b2) = (ld(&p.b1, h), ld(&p.b2, h));
+            st(&mut p.b1, h, _mm256_blendv_ps(b1, u, ok));
+            st(&mut p.b2, h, _mm256_blendv_ps(b2, v, ok));
+            out |= bits << (W * h);
+        }
+    }
+    out
+}
