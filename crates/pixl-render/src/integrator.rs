@@ -372,7 +372,7 @@ struct Nee {
 /// cost depends little on how many of its lanes are live). Measured on the bench scene
 /// (BENCHMARKS.md, session 15).
 const MIN_SHADOW_PACKET: usize = 4;
-const MIN_BOUNCE_PACKET: usize = 12;
+const MIN_BOUNCE_PACKET: usize = 8;
 
 /// The rays of some lanes of a packet of paths, compacted, for one BVH query.
 struct Batch {

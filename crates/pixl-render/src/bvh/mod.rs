@@ -29,6 +29,8 @@ use crate::math::V3;
 
 #[cfg(target_arch = "x86_64")]
 mod packet_avx2;
+#[cfg(target_arch = "x86_64")]
+mod packet_avx512;
 
 /// A triangle as stored for intersection: one vertex and two edges.
 #[derive(Clone, Copy, Debug)]
@@ -437,10 +439,10 @@ impl Bvh {
         best: &mut Option<Hit>,
     ) -> bool {
         #[cfg(target_arch = "x86_64")]
-        if isa == Isa::Avx2 && Isa::detect() == Isa::Avx2 {
+        if isa >= Isa::Avx2 && Isa::detect() >= Isa::Avx2 {
             // SAFETY: `traverse_avx2` only requires the CPU features it is compiled for, and
-            // `Isa::detect` returned `Avx2` only after `is_x86_feature_detected!` confirmed
-            // every one of them (AVX2, FMA, BMI1, BMI2, LZCNT, POPCNT) on this CPU.
+            // `Isa::detect` returned `Avx2` or `Avx512` only after `is_x86_feature_detected!`
+            // confirmed every one of them (AVX2, FMA, BMI1, BMI2, LZCNT, POPCNT) on this CPU.
             return unsafe { self.traverse_avx2::<ANY>(start, ray, tmin, tmax, best) };
         }
         let _ = isa;
@@ -653,6 +655,11 @@ impl Bvh {
     }
 }
 
+/// A packet traversal reaching a node with at most this many live lanes finishes the
+/// subtree for each of them by single-ray traversal ([`Bvh::finish_lane`]). Measured on the
+/// bench scene's bounce packets: 3.6 → 4.4 Mrays/s (BENCHMARKS.md, session 15).
+const FINISH_ALONE: u32 = 2;
+
 /// Rays per packet of [`Bvh::intersect_packet`] / [`Bvh::occluded_packet`].
 pub const PACKET: usize = 16;
 
@@ -669,16 +676,41 @@ struct RayPack {
     skip: [u32; PACKET],
     /// Current far limit per lane (the closest hit so far).
     tmax: [f32; PACKET],
-    /// Closest hit so far per lane: barycentrics and (packet index, lane) of the triangle.
+    /// Closest hit so far per lane: barycentrics, triangle and point (as [`Hit`]).
     b1: [f32; PACKET],
     b2: [f32; PACKET],
-    pk: [u32; PACKET],
-    lane: [u32; PACKET],
+    prim: [u32; PACKET],
+    hp: [V3; PACKET],
     /// Lanes that found a hit.
     found: u32,
 }
 
 impl RayPack {
+    /// For each lane in `m`, which has just hit lane `l` of `pk` (its `tmax`, `b1`, `b2`
+    /// already written): the triangle and the hit point, computed as [`intersect_tri4`] does.
+    #[inline(always)]
+    fn record(&mut self, mut m: u32, pk: &Tri4, l: usize) {
+        self.found |= m;
+        let lane = |a: &[[f32; 4]; 3]| V3::new(a[0][l], a[1][l], a[2][l]);
+        while m != 0 {
+            let r = m.trailing_zeros() as usize;
+            m &= m - 1;
+            self.prim[r] = pk.prim[l];
+            self.hp[r] = lane(&pk.p0) + lane(&pk.e1) * self.b1[r] + lane(&pk.e2) * self.b2[r];
+        }
+    }
+
+    /// The ray of lane `r`.
+    #[inline(always)]
+    fn ray(&self, r: usize) -> Ray {
+        Ray {
+            o: V3::new(self.o[0][r], self.o[1][r], self.o[2][r]),
+            d: V3::new(self.d[0][r], self.d[1][r], self.d[2][r]),
+            inv_d: V3::new(self.inv[0][r], self.inv[1][r], self.inv[2][r]),
+            skip: self.skip[r],
+        }
+    }
+
     fn new(rays: &[Ray], tmax: &[f32]) -> (RayPack, u32) {
         let mut p = RayPack {
             o: [[0.0; PACKET]; 3],
@@ -689,8 +721,8 @@ impl RayPack {
             tmax: [f32::NEG_INFINITY; PACKET],
             b1: [0.0; PACKET],
             b2: [0.0; PACKET],
-            pk: [0; PACKET],
-            lane: [0; PACKET],
+            prim: [0; PACKET],
+            hp: [V3::ZERO; PACKET],
             found: 0,
         };
         let mut act = 0u32;
@@ -726,18 +758,12 @@ impl Bvh {
                 self.traverse_packet::<false>(isa, 0, act, &mut p, tmin);
             }
             for (r, o) in out.iter_mut().enumerate().take(rays.len().min(tmax.len())) {
-                *o = (p.found >> r & 1 != 0).then(|| {
-                    let pk = &self.packets[p.pk[r] as usize];
-                    let i = p.lane[r] as usize;
-                    let lane = |a: &[[f32; 4]; 3]| V3::new(a[0][i], a[1][i], a[2][i]);
-                    let (b1, b2) = (p.b1[r], p.b2[r]);
-                    Hit {
-                        t: p.tmax[r],
-                        b1,
-                        b2,
-                        prim: pk.prim[i],
-                        p: lane(&pk.p0) + lane(&pk.e1) * b1 + lane(&pk.e2) * b2,
-                    }
+                *o = (p.found >> r & 1 != 0).then(|| Hit {
+                    t: p.tmax[r],
+                    b1: p.b1[r],
+                    b2: p.b2[r],
+                    prim: p.prim[r],
+                    p: p.hp[r],
                 });
             }
         }
@@ -766,7 +792,14 @@ impl Bvh {
     #[inline]
     fn traverse_packet<const ANY: bool>(&self, isa: Isa, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
         #[cfg(target_arch = "x86_64")]
-        if isa == Isa::Avx2 && Isa::detect() == Isa::Avx2 {
+        if isa == Isa::Avx512 && Isa::detect() == Isa::Avx512 {
+            // SAFETY: `Isa::detect` returned `Avx512` only after `is_x86_feature_detected!`
+            // confirmed AVX-512F and every AVX2-level feature `traverse_packet_avx512` is
+            // compiled for on this CPU.
+            return unsafe { self.traverse_packet_avx512::<ANY>(start, act, p, tmin) };
+        }
+        #[cfg(target_arch = "x86_64")]
+        if isa >= Isa::Avx2 && Isa::detect() >= Isa::Avx2 {
             // SAFETY: as in `traverse`: `Isa::detect` confirmed every feature
             // `traverse_packet_avx2` is compiled for on this CPU.
             return unsafe { self.traverse_packet_avx2::<ANY>(start, act, p, tmin) };
@@ -788,6 +821,24 @@ impl Bvh {
         self.traverse_packet_body::<ANY>(start, act, p, tmin)
     }
 
+    /// Finishes the subtree under child code `cur` for lane `r` alone, by single-ray traversal
+    /// (for `isa`), and records its hit in the packet: once a packet has only a few live
+    /// lanes, a single ray visits a node for less than a packet does. Same hits as the
+    /// packet traversal (same triangle test), within the lane's current limit.
+    #[inline(always)]
+    fn finish_lane<const ANY: bool>(&self, isa: Isa, cur: u32, r: usize, p: &mut RayPack, tmin: f32) {
+        let mut best = None;
+        self.traverse::<ANY>(isa, cur, &p.ray(r), tmin, p.tmax[r], &mut best);
+        if let Some(h) = best {
+            p.tmax[r] = h.t;
+            p.b1[r] = h.b1;
+            p.b2[r] = h.b2;
+            p.prim[r] = h.prim;
+            p.hp[r] = h.p;
+            p.found |= 1 << r;
+        }
+    }
+
     /// Packet traversal of the subtree under child code `start` for the lanes in `act`: each
     /// lane runs [`Bvh::traverse_body`]'s box and triangle tests (same arithmetic), a node is
     /// visited while any active lane enters it, and children are visited in order of the
@@ -803,7 +854,14 @@ impl Bvh {
             if ANY {
                 act &= !p.found;
             }
-            if act != 0 && cur & LEAF == 0 {
+            if act != 0 && act.count_ones() <= FINISH_ALONE && cur != EMPTY {
+                let mut m = act;
+                while m != 0 {
+                    let r = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    self.finish_lane::<ANY>(Isa::Base, cur, r, p, tmin);
+                }
+            } else if act != 0 && cur & LEAF == 0 {
                 let n = &self.nodes[cur as usize];
                 // Per child: lanes entering it and the smallest entry distance (as bits:
                 // entry distances are ≥ 0, so their bit patterns order as the floats do).
@@ -876,21 +934,13 @@ impl Bvh {
             } else if act != 0 && cur != EMPTY {
                 let first = (cur & LEAF_INDEX_MASK) as usize;
                 let count = ((cur & !LEAF) >> LEAF_COUNT_SHIFT) as usize + 1;
-                for (pi, pk) in self.packets[first..first + count].iter().enumerate() {
+                for pk in &self.packets[first..first + count] {
                     for l in 0..4 {
                         if pk.prim[l] == u32::MAX {
                             break;
                         }
                         let m = intersect_tri_lanes(pk, l, p, tmin, act);
-                        if m != 0 {
-                            for r in 0..PACKET {
-                                if m >> r & 1 != 0 {
-                                    p.pk[r] = (first + pi) as u32;
-                                    p.lane[r] = l as u32;
-                                }
-                            }
-                            p.found |= m;
-                        }
+                        p.record(m, pk, l);
                     }
                 }
             }
@@ -971,13 +1021,15 @@ fn intersect_tri_lanes(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32
     m
 }
 
-/// Instruction set a traversal is compiled for.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// Instruction set a traversal is compiled for (ordered: each one includes the previous).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
 pub enum Isa {
     /// The build target's baseline (SSE2 on x86-64).
     Base,
     /// x86-64 with AVX2, FMA, BMI1/2, LZCNT and POPCNT, detected at run time.
     Avx2,
+    /// [`Isa::Avx2`] plus AVX-512F (used by packet traversal; single rays use the AVX2 code).
+    Avx512,
 }
 
 impl Isa {
@@ -987,11 +1039,12 @@ impl Isa {
         #[cfg(target_arch = "x86_64")]
         {
             use std::sync::atomic::{AtomicU8, Ordering};
-            // 0 = not yet detected, 1 = Base, 2 = Avx2.
+            // 0 = not yet detected, then 1 + the `Isa` as u8.
             static DETECTED: AtomicU8 = AtomicU8::new(0);
             match DETECTED.load(Ordering::Relaxed) {
                 1 => Isa::Base,
                 2 => Isa::Avx2,
+                3 => Isa::Avx512,
                 _ => {
                     let avx2 = is_x86_feature_detected!("avx2")
                         && is_x86_feature_detected!("fma")
@@ -999,12 +1052,13 @@ impl Isa {
                         && is_x86_feature_detected!("bmi2")
                         && is_x86_feature_detected!("lzcnt")
                         && is_x86_feature_detected!("popcnt");
-                    DETECTED.store(if avx2 { 2 } else { 1 }, Ordering::Relaxed);
-                    if avx2 {
-                        Isa::Avx2
-                    } else {
-                        Isa::Base
-                    }
+                    let isa = match (avx2, is_x86_feature_detected!("avx512f")) {
+                        (true, true) => Isa::Avx512,
+                        (true, false) => Isa::Avx2,
+                        _ => Isa::Base,
+                    };
+                    DETECTED.store(1 + isa as u8, Ordering::Relaxed);
+                    isa
                 }
             }
         }
@@ -1014,11 +1068,10 @@ impl Isa {
 
     /// Every instruction set usable on this CPU (the baseline first).
     pub fn available() -> Vec<Isa> {
-        let mut v = vec![Isa::Base];
-        if Isa::detect() == Isa::Avx2 {
-            v.push(Isa::Avx2);
-        }
-        v
+        [Isa::Base, Isa::Avx2, Isa::Avx512]
+            .into_iter()
+            .filter(|&i| i <= Isa::detect())
+            .collect()
     }
 }
 
@@ -1177,6 +1230,12 @@ mod tests {
         let isas = Isa::available();
         if cfg!(target_arch = "x86_64") && std::is_x86_feature_detected!("avx2") {
             assert!(isas.contains(&Isa::Avx2), "AVX2 CPU but the AVX2 traversal is not used");
+            if std::is_x86_feature_detected!("avx512f") {
+                assert!(
+                    isas.contains(&Isa::Avx512),
+                    "AVX-512 CPU but the AVX-512 packets are not used"
+                );
+            }
         }
         let hits: Vec<usize> = isas
             .iter()

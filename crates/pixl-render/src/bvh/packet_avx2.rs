@@ -15,7 +15,7 @@
 //! node on the benchmark); this form tests a node's four children against 16 rays in ~40 ns,
 //! which makes packets of a pixel's divergent bounce and shadow rays cheaper than tracing them
 //! one by one (BENCHMARKS.md, session 15).
-use super::{Bvh, RayPack, Tri4, EMPTY, LEAF, LEAF_COUNT_SHIFT, LEAF_INDEX_MASK, PACKET, STACK};
+use super::{Bvh, Isa, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, LEAF_COUNT_SHIFT, LEAF_INDEX_MASK, PACKET, STACK};
 use std::arch::x86_64::*;
 
 /// Lanes per vector; a packet is `HALVES` vectors.
@@ -96,7 +96,14 @@ impl Bvh {
             if ANY {
                 act &= !p.found;
             }
-            if act != 0 && cur & LEAF == 0 {
+            if act != 0 && act.count_ones() <= FINISH_ALONE && cur != EMPTY {
+                let mut m = act;
+                while m != 0 {
+                    let r = m.trailing_zeros() as usize;
+                    m &= m - 1;
+                    self.finish_lane::<ANY>(Isa::Avx2, cur, r, p, tmin);
+                }
+            } else if act != 0 && cur & LEAF == 0 {
                 let n = &self.nodes[cur as usize];
                 let actv = [lane_mask(act, 0), lane_mask(act, 1)];
                 let mut cm = [0u32; 4];
@@ -168,21 +175,13 @@ impl Bvh {
             } else if act != 0 && cur != EMPTY {
                 let first = (cur & LEAF_INDEX_MASK) as usize;
                 let count = ((cur & !LEAF) >> LEAF_COUNT_SHIFT) as usize + 1;
-                for (pi, pk) in self.packets[first..first + count].iter().enumerate() {
+                for pk in &self.packets[first..first + count] {
                     for l in 0..4 {
                         if pk.prim[l] == u32::MAX {
                             break;
                         }
-                        let mut m = tri_lanes(pk, l, p, tmin, act);
-                        if m != 0 {
-                            p.found |= m;
-                            while m != 0 {
-                                let r = m.trailing_zeros() as usize;
-                                m &= m - 1;
-                                p.pk[r] = (first + pi) as u32;
-                                p.lane[r] = l as u32;
-                            }
-                        }
+                        let m = tri_lanes(pk, l, p, tmin, act);
+                        p.record(m, pk, l);
                     }
                 }
             }
