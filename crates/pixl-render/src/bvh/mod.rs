@@ -29,8 +29,6 @@ use crate::math::V3;
 
 #[cfg(target_arch = "x86_64")]
 mod packet_avx2;
-#[cfg(target_arch = "x86_64")]
-mod packet_avx512;
 
 /// A triangle as stored for intersection: one vertex and two edges.
 #[derive(Clone, Copy, Debug)]
@@ -439,10 +437,10 @@ impl Bvh {
         best: &mut Option<Hit>,
     ) -> bool {
         #[cfg(target_arch = "x86_64")]
-        if isa >= Isa::Avx2 && Isa::detect() >= Isa::Avx2 {
+        if isa == Isa::Avx2 && Isa::detect() == Isa::Avx2 {
             // SAFETY: `traverse_avx2` only requires the CPU features it is compiled for, and
-            // `Isa::detect` returned `Avx2` or `Avx512` only after `is_x86_feature_detected!`
-            // confirmed every one of them (AVX2, FMA, BMI1, BMI2, LZCNT, POPCNT) on this CPU.
+            // `Isa::detect` returned `Avx2` only after `is_x86_feature_detected!` confirmed
+            // every one of them (AVX2, FMA, BMI1, BMI2, LZCNT, POPCNT) on this CPU.
             return unsafe { self.traverse_avx2::<ANY>(start, ray, tmin, tmax, best) };
         }
         let _ = isa;
@@ -792,14 +790,7 @@ impl Bvh {
     #[inline]
     fn traverse_packet<const ANY: bool>(&self, isa: Isa, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
         #[cfg(target_arch = "x86_64")]
-        if isa == Isa::Avx512 && Isa::detect() == Isa::Avx512 {
-            // SAFETY: `Isa::detect` returned `Avx512` only after `is_x86_feature_detected!`
-            // confirmed AVX-512F and every AVX2-level feature `traverse_packet_avx512` is
-            // compiled for on this CPU.
-            return unsafe { self.traverse_packet_avx512::<ANY>(start, act, p, tmin) };
-        }
-        #[cfg(target_arch = "x86_64")]
-        if isa >= Isa::Avx2 && Isa::detect() >= Isa::Avx2 {
+        if isa == Isa::Avx2 && Isa::detect() == Isa::Avx2 {
             // SAFETY: as in `traverse`: `Isa::detect` confirmed every feature
             // `traverse_packet_avx2` is compiled for on this CPU.
             return unsafe { self.traverse_packet_avx2::<ANY>(start, act, p, tmin) };
@@ -1028,12 +1019,11 @@ pub enum Isa {
     Base,
     /// x86-64 with AVX2, FMA, BMI1/2, LZCNT and POPCNT, detected at run time.
     Avx2,
-    /// [`Isa::Avx2`] plus AVX-512F (used by packet traversal; single rays use the AVX2 code).
-    Avx512,
 }
 
 impl Isa {
-    /// The best instruction set this CPU supports (detected once, then cached).
+    /// The best instruction set this CPU supports (detected once, then cached), capped by
+    /// `PIXL_ISA` if set.
     #[inline]
     pub fn detect() -> Isa {
         #[cfg(target_arch = "x86_64")]
@@ -1044,7 +1034,6 @@ impl Isa {
             match DETECTED.load(Ordering::Relaxed) {
                 1 => Isa::Base,
                 2 => Isa::Avx2,
-                3 => Isa::Avx512,
                 _ => {
                     let avx2 = is_x86_feature_detected!("avx2")
                         && is_x86_feature_detected!("fma")
@@ -1052,11 +1041,8 @@ impl Isa {
                         && is_x86_feature_detected!("bmi2")
                         && is_x86_feature_detected!("lzcnt")
                         && is_x86_feature_detected!("popcnt");
-                    let isa = match (avx2, is_x86_feature_detected!("avx512f")) {
-                        (true, true) => Isa::Avx512,
-                        (true, false) => Isa::Avx2,
-                        _ => Isa::Base,
-                    };
+                    let best = if avx2 { Isa::Avx2 } else { Isa::Base };
+                    let isa = best.min(Isa::cap_from_env());
                     DETECTED.store(1 + isa as u8, Ordering::Relaxed);
                     isa
                 }
@@ -1066,9 +1052,18 @@ impl Isa {
         Isa::Base
     }
 
+    /// The cap set by the environment variable `PIXL_ISA=base` (case-insensitive), for A/B
+    /// measurements of the traversal kernels; none when unset or anything else.
+    fn cap_from_env() -> Isa {
+        match std::env::var("PIXL_ISA").map(|v| v.to_ascii_lowercase()).as_deref() {
+            Ok("base") => Isa::Base,
+            _ => Isa::Avx2,
+        }
+    }
+
     /// Every instruction set usable on this CPU (the baseline first).
     pub fn available() -> Vec<Isa> {
-        [Isa::Base, Isa::Avx2, Isa::Avx512]
+        [Isa::Base, Isa::Avx2]
             .into_iter()
             .filter(|&i| i <= Isa::detect())
             .collect()
@@ -1228,14 +1223,11 @@ mod tests {
     /// with the traversal of every instruction set this CPU has; returns the hits per set.
     fn check(tris: &[Tri], n_rays: usize, seed: u64) -> usize {
         let isas = Isa::available();
-        if cfg!(target_arch = "x86_64") && std::is_x86_feature_detected!("avx2") {
+        if cfg!(target_arch = "x86_64")
+            && std::is_x86_feature_detected!("avx2")
+            && std::env::var_os("PIXL_ISA").is_none()
+        {
             assert!(isas.contains(&Isa::Avx2), "AVX2 CPU but the AVX2 traversal is not used");
-            if std::is_x86_feature_detected!("avx512f") {
-                assert!(
-                    isas.contains(&Isa::Avx512),
-                    "AVX-512 CPU but the AVX-512 packets are not used"
-                );
-            }
         }
         let hits: Vec<usize> = isas
             .iter()
