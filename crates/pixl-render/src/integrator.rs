@@ -110,15 +110,20 @@ impl Renderer {
     pub fn render(&self, progress: &(dyn Fn(usize, usize) + Sync)) -> Film {
         let (w, h) = (self.width as usize, self.height as usize);
         let done = AtomicUsize::new(0);
-        // Rows written in place (no per-row vectors to gather and copy afterwards).
-        let mut sums = vec![PixelSum::default(); w * h];
-        sums.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-            for (x, p) in row.iter_mut().enumerate() {
-                *p = self.render_pixel(x, y);
-            }
-            let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-            progress(d, h);
-        });
+        // Collected in parallel straight into the final buffer (no serial initialisation of
+        // ~40 MB before the render, no per-row vectors to gather); at least a row per task.
+        let sums: Vec<PixelSum> = (0..w * h)
+            .into_par_iter()
+            .with_min_len(w)
+            .map(|i| {
+                let sum = self.render_pixel(i % w, i / w);
+                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
+                if d % w == 0 {
+                    progress(d / w, h);
+                }
+                sum
+            })
+            .collect();
         Film::from_sums(w, h, self.opts.spp, &sums)
     }
 
@@ -132,9 +137,7 @@ impl Renderer {
         let spp = self.opts.spp as usize;
         for s0 in (0..spp).step_by(PACKET) {
             let n = PACKET.min(spp - s0);
-            for sample in &self.trace_packet(x, y, pixel, s0, n)[..n] {
-                acc.add(sample);
-            }
+            self.trace_packet(x, y, pixel, s0, n, &mut acc);
         }
         acc
     }
@@ -148,14 +151,14 @@ impl Renderer {
     }
 
     /// Samples `s0..s0 + n` (`n ≤ PACKET`) of pixel `(x, y)`: each one camera path, its
-    /// contribution to every pass (lanes `n..` are left empty).
+    /// contribution to every pass added to `acc` (in sample order).
     ///
     /// The paths run in lockstep, one vertex at a time: every live path picks its light
     /// sample, then all their shadow rays are traced (as one packet when there are enough of
     /// them), then every path samples its BSDF, then all continuation rays are traced. Per
     /// path, the random numbers, the estimator and the order of its float operations are those
     /// of a path traced alone.
-    fn trace_packet(&self, x: usize, y: usize, pixel: u64, s0: usize, n: usize) -> [PixelSum; PACKET] {
+    fn trace_packet(&self, x: usize, y: usize, pixel: u64, s0: usize, n: usize, acc: &mut PixelSum) {
         let geom = &self.geom;
         let lights = &self.lights;
         let mut sums = [PixelSum::default(); PACKET];
@@ -179,6 +182,8 @@ impl Renderer {
         let max_b = self.opts.max_bounces;
         // Per lane: the light the pending shadow ray carries, if unoccluded.
         let mut pending: [Option<Nee>; PACKET] = [None; PACKET];
+        // Per lane, the closest hit of its continuation ray (set for the lanes that trace one).
+        let mut next = [None; PACKET];
         loop {
             // Russian roulette, then next-event estimation: light samples and shadow rays.
             let mut shadow = Batch::new();
@@ -260,7 +265,7 @@ impl Renderer {
             if bounce.len == 0 {
                 break;
             }
-            let next = bounce.intersect(geom);
+            bounce.intersect(geom, &mut next);
             // Emission found by the continuation rays, and the next vertex.
             for j in 0..n {
                 let (Some(path), Some(bs)) = (&mut paths[j], samples[j]) else {
@@ -309,7 +314,9 @@ impl Renderer {
                 }
             }
         }
-        sums
+        for s in &sums[..n] {
+            acc.add(s);
+        }
     }
 
     /// What the camera ray of one sample sees before any bounce — lights in view, the world,
@@ -422,8 +429,9 @@ impl Batch {
         out
     }
 
-    /// Per lane, the closest hit of its ray (`None` for lanes without a ray).
-    fn intersect(&self, geom: &Geometry) -> [Option<SurfaceHit>; PACKET] {
+    /// The closest hit of each ray, written to `out` at its lane (lanes without a ray are
+    /// left as they are).
+    fn intersect(&self, geom: &Geometry, out: &mut [Option<SurfaceHit>; PACKET]) {
         let mut by_slot = [None; PACKET];
         let k = self.len;
         if k >= MIN_BOUNCE_PACKET {
@@ -433,11 +441,9 @@ impl Batch {
                 by_slot[i] = geom.intersect(&self.rays[i], 0.0, self.tmax[i]);
             }
         }
-        let mut out = [None; PACKET];
         for i in 0..k {
             out[self.lane[i] as usize] = by_slot[i];
         }
-        out
     }
 }
 

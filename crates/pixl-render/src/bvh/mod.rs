@@ -485,8 +485,8 @@ impl Bvh {
         let neg: [usize; 3] = std::array::from_fn(|a| (inv[a] < 0.0) as usize);
         let near: [usize; 3] = std::array::from_fn(|a| a + 3 * neg[a]);
         let far: [usize; 3] = std::array::from_fn(|a| a + 3 - 3 * neg[a]);
-        let mut stack_c = [0u32; STACK];
-        let mut stack_t = [0f32; STACK];
+        let mut stack_c = [std::mem::MaybeUninit::<u32>::uninit(); STACK];
+        let mut stack_t = [std::mem::MaybeUninit::<f32>::uninit(); STACK];
         let mut sp = 0usize;
         let mut cur = start;
         loop {
@@ -527,8 +527,8 @@ impl Bvh {
                         let i1 = (mask & (mask - 1)).trailing_zeros() as usize;
                         let (a, b) = if ANY || tn[i0] <= tn[i1] { (i0, i1) } else { (i1, i0) };
                         self.prefetch(n.child[b]);
-                        stack_c[sp] = n.child[b];
-                        stack_t[sp] = tn[b];
+                        stack_c[sp].write(n.child[b]);
+                        stack_t[sp].write(tn[b]);
                         sp += 1;
                         cur = n.child[a];
                         continue;
@@ -560,8 +560,8 @@ impl Bvh {
                         for j in (1..k as usize).rev() {
                             if sp < STACK {
                                 self.prefetch(c[j]);
-                                stack_c[sp] = c[j];
-                                stack_t[sp] = t[j];
+                                stack_c[sp].write(c[j]);
+                                stack_t[sp].write(t[j]);
                                 sp += 1;
                             } else if self.traverse_deep::<ANY>(c[j], ray, tmin, tmax, best) && ANY {
                                 // (Closest-hit goes on: `traverse_deep` returning true only
@@ -594,8 +594,10 @@ impl Bvh {
                     return best.is_some();
                 }
                 sp -= 1;
-                if ANY || stack_t[sp] <= tmax {
-                    cur = stack_c[sp];
+                // SAFETY: entries `0..sp` were written by the pushes above (the stack
+                // pointer only moves past an entry after writing it).
+                if ANY || unsafe { stack_t[sp].assume_init() } <= tmax {
+                    cur = unsafe { stack_c[sp].assume_init() };
                     break;
                 }
             }
