@@ -118,7 +118,7 @@ impl Renderer {
             .map(|i| {
                 let sum = self.render_pixel(i % w, i / w);
                 let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-                if d % w == 0 {
+                if d.is_multiple_of(w) {
                     progress(d / w, h);
                 }
                 sum
