@@ -184,9 +184,14 @@ impl Renderer {
         let mut pending: [Option<Nee>; PACKET] = [None; PACKET];
         // Per lane, the closest hit of its continuation ray (set for the lanes that trace one).
         let mut next = [None; PACKET];
+        // Per iteration: shadow rays, continuation rays and the BSDF sample of each lane that
+        // continues (a lane alive after the BSDF step has always written its entries, so
+        // nothing is cleared between iterations).
+        let (mut shadow, mut bounce) = (Batch::new(), Batch::new());
+        let mut samples: [Option<BsdfSample>; PACKET] = [None; PACKET];
         loop {
             // Russian roulette, then next-event estimation: light samples and shadow rays.
-            let mut shadow = Batch::new();
+            shadow.len = 0;
             for j in 0..n {
                 let Some(path) = &mut paths[j] else { continue };
                 let rng = &mut rngs[j];
@@ -220,8 +225,7 @@ impl Renderer {
             }
             let occluded = shadow.occluded(geom);
             // Light of unoccluded shadow rays, then the BSDF sample of each path.
-            let mut bounce = Batch::new();
-            let mut samples: [Option<BsdfSample>; PACKET] = [None; PACKET];
+            bounce.len = 0;
             for j in 0..n {
                 let Some(path) = &mut paths[j] else { continue };
                 if let Some(nee) = pending[j].take() {
