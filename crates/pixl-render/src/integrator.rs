@@ -1,9 +1,12 @@
 //! Unidirectional path tracing with next-event estimation and MIS, writing Cycles' passes.
 //!
-//! Layers (pbrt-style): [`render`] (rows in parallel with rayon) → `render_pixel` (samples of
-//! one pixel) → `trace` (one path). Each `(pixel, sample)` draws from its own random stream
-//! `Rng::for_stream(seed, [pixel, sample])`, so the image is bit-identical for a given seed
-//! whatever the thread count or scheduling.
+//! Layers (pbrt-style): [`render`] (pixels in parallel with rayon, at least a row per task) →
+//! `render_pixel` (samples of one pixel) → `trace_packet` (up to [`PACKET`] camera paths of
+//! that pixel in lockstep, one vertex at a time, so that their camera, shadow and continuation
+//! rays share BVH traversals as packets). Each `(pixel, sample)` draws from its own random
+//! stream `Rng::for_stream(seed, [pixel, sample])` and keeps its own order of operations, so
+//! the image is bit-identical for a given seed whatever the thread count, the scheduling or
+//! how rays are grouped (tested: lockstep = each sample traced alone).
 //!
 //! Per path vertex: one light is picked by power and sampled (NEE; MIS with the BSDF pdf for
 //! area, world and emissive-triangle lights, none for delta lights), then the BSDF is sampled

@@ -21,6 +21,14 @@
 //! - Traversal: children hit by the ray are visited nearest first (sorted by entry distance)
 //!   for closest-hit queries, with entries farther than the current hit skipped when popped;
 //!   any-hit queries stop at the first hit and do not sort.
+//! - Packets of up to [`PACKET`] rays ([`Bvh::intersect_packet`], [`Bvh::occluded_packet`])
+//!   share one traversal: a node is visited while any live lane enters it. On AVX2 CPUs the
+//!   kernel is written with intrinsics (`packet_avx2.rs`: a child box or a triangle against 16
+//!   lanes in two 8-wide vectors); elsewhere portable lane loops. Once a node is reached by at
+//!   most `FINISH_ALONE` (2) live lanes, each finishes that subtree by single-ray traversal
+//!   (cheaper per node than a nearly empty packet). Per lane, results equal the single-ray
+//!   query's (same triangle test), up to ties.
+//! - `PIXL_ISA=base` in the environment forces the portable code (for A/B measurements).
 //!
 //! Why our own rather than a crate: the renderer needs a few hundred lines of BVH, must be
 //! deterministic and is tuned to this triangle layout; the crates we looked at (`bvh`, `obvhs`)
