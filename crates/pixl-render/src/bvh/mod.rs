@@ -584,9 +584,7 @@ impl Bvh {
                     }
                 }
             } else if cur != EMPTY {
-                let first = (cur & LEAF_INDEX_MASK) as usize;
-                let count = ((cur & !LEAF) >> LEAF_COUNT_SHIFT) as usize + 1;
-                for pk in &self.packets[first..first + count] {
+                for pk in self.leaf_packets(cur) {
                     if let Some(h) = intersect_tri4(pk, ray, tmin, tmax) {
                         tmax = h.t;
                         *best = Some(h);
@@ -660,6 +658,91 @@ impl Bvh {
         }
         #[cfg(not(target_arch = "x86_64"))]
         let _ = c;
+    }
+}
+
+/// The pending subtrees of a packet traversal: child code, live lanes and the nearest lane's
+/// entry distance (as bits) of each.
+struct PacketStack {
+    c: [u32; STACK],
+    m: [u32; STACK],
+    t: [u32; STACK],
+    sp: usize,
+}
+
+impl PacketStack {
+    fn new() -> PacketStack {
+        PacketStack {
+            c: [0; STACK],
+            m: [0; STACK],
+            t: [0; STACK],
+            sp: 0,
+        }
+    }
+
+    /// The children of `n` that some lane enters (`cm`: lanes per child, `ct`: nearest entry
+    /// bits), nearest first (any-hit: in slot order): the first is returned as (code, lanes),
+    /// the others pushed so that the next nearest pops first; `overflow(code, lanes)` takes
+    /// those that do not fit. `None` when no child is entered.
+    #[inline(always)]
+    fn push_children<const ANY: bool>(
+        &mut self,
+        bvh: &Bvh,
+        n: &Node4,
+        cm: &[u32; 4],
+        ct: &[u32; 4],
+        mut overflow: impl FnMut(u32, u32),
+    ) -> Option<(u32, u32)> {
+        let mut order = [0usize; 4];
+        let mut k = 0;
+        for c in 0..4 {
+            if cm[c] != 0 {
+                let mut i = k;
+                while !ANY && i > 0 && ct[order[i - 1]] > ct[c] {
+                    order[i] = order[i - 1];
+                    i -= 1;
+                }
+                order[i] = c;
+                k += 1;
+            }
+        }
+        if k == 0 {
+            return None;
+        }
+        for j in (1..k).rev() {
+            let c = order[j];
+            if self.sp < STACK {
+                bvh.prefetch(n.child[c]);
+                (self.c[self.sp], self.m[self.sp], self.t[self.sp]) = (n.child[c], cm[c], ct[c]);
+                self.sp += 1;
+            } else {
+                overflow(n.child[c], cm[c]);
+            }
+        }
+        Some((n.child[order[0]], cm[order[0]]))
+    }
+
+    /// Pops entries until one for which `live(lanes, entry bits)` holds: its (code, lanes).
+    #[inline(always)]
+    fn pop(&mut self, mut live: impl FnMut(u32, u32) -> bool) -> Option<(u32, u32)> {
+        while self.sp > 0 {
+            self.sp -= 1;
+            let (c, m, t) = (self.c[self.sp], self.m[self.sp], self.t[self.sp]);
+            if live(m, t) {
+                return Some((c, m));
+            }
+        }
+        None
+    }
+}
+
+impl Bvh {
+    /// The triangle packets of leaf child code `code`.
+    #[inline(always)]
+    fn leaf_packets(&self, code: u32) -> &[Tri4] {
+        let first = (code & LEAF_INDEX_MASK) as usize;
+        let count = ((code & !LEAF) >> LEAF_COUNT_SHIFT) as usize + 1;
+        &self.packets[first..first + count]
     }
 }
 
@@ -846,10 +929,7 @@ impl Bvh {
     /// nearest lane's entry. With `ANY`, lanes stop at their first hit.
     #[inline(always)]
     fn traverse_packet_body<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
-        let mut stack_c = [0u32; STACK];
-        let mut stack_m = [0u32; STACK];
-        let mut stack_t = [0u32; STACK];
-        let mut sp = 0usize;
+        let mut stack = PacketStack::new();
         let (mut cur, mut act) = (start, act);
         loop {
             if ANY {
@@ -902,40 +982,15 @@ impl Bvh {
                     cm[c] = m;
                     ct[c] = tb.iter().fold(u32::MAX, |a, &b| a.min(b));
                 }
-                // Hit children, nearest first (any-hit: in slot order).
-                let mut order = [0usize; 4];
-                let mut k = 0;
-                for c in 0..4 {
-                    if cm[c] != 0 {
-                        let mut i = k;
-                        while !ANY && i > 0 && ct[order[i - 1]] > ct[c] {
-                            order[i] = order[i - 1];
-                            i -= 1;
-                        }
-                        order[i] = c;
-                        k += 1;
-                    }
-                }
-                if k > 0 {
-                    for j in (1..k).rev() {
-                        let c = order[j];
-                        if sp < STACK {
-                            stack_c[sp] = n.child[c];
-                            stack_m[sp] = cm[c];
-                            stack_t[sp] = ct[c];
-                            sp += 1;
-                        } else {
-                            self.traverse_packet_deep::<ANY>(n.child[c], cm[c], p, tmin);
-                        }
-                    }
-                    cur = n.child[order[0]];
-                    act = cm[order[0]];
+                let next = stack.push_children::<ANY>(self, n, &cm, &ct, |c, m| {
+                    self.traverse_packet_deep::<ANY>(c, m, p, tmin)
+                });
+                if let Some((c, m)) = next {
+                    (cur, act) = (c, m);
                     continue;
                 }
             } else if act != 0 && cur != EMPTY {
-                let first = (cur & LEAF_INDEX_MASK) as usize;
-                let count = ((cur & !LEAF) >> LEAF_COUNT_SHIFT) as usize + 1;
-                for pk in &self.packets[first..first + count] {
+                for pk in self.leaf_packets(cur) {
                     for l in 0..4 {
                         if pk.prim[l] == u32::MAX {
                             break;
@@ -946,19 +1001,9 @@ impl Bvh {
                 }
             }
             // Pop the next entry that can still hold a closer hit for one of its lanes.
-            loop {
-                if sp == 0 {
-                    return;
-                }
-                sp -= 1;
-                let m = stack_m[sp];
+            let live = |m: u32, t: u32| {
                 if ANY {
-                    if m & !p.found != 0 {
-                        cur = stack_c[sp];
-                        act = m;
-                        break;
-                    }
-                    continue;
+                    return m & !p.found != 0;
                 }
                 // Farthest limit among the entry's lanes (limits are > tmin ≥ 0 for lanes
                 // that can hit; a negative one compares as the largest bits, so never culls).
@@ -967,11 +1012,11 @@ impl Bvh {
                     let b = if m >> r & 1 != 0 { p.tmax[r].to_bits() } else { 0 };
                     far = far.max(b);
                 }
-                if stack_t[sp] <= far {
-                    cur = stack_c[sp];
-                    act = m;
-                    break;
-                }
+                t <= far
+            };
+            match stack.pop(live) {
+                Some((c, m)) => (cur, act) = (c, m),
+                None => return,
             }
         }
     }

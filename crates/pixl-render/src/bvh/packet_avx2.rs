@@ -15,7 +15,7 @@
 //! node on the benchmark); this form tests a node's four children against 16 rays in ~40 ns,
 //! which makes packets of a pixel's divergent bounce and shadow rays cheaper than tracing them
 //! one by one (BENCHMARKS.md, session 15).
-use super::{Bvh, Isa, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, LEAF_COUNT_SHIFT, LEAF_INDEX_MASK, PACKET, STACK};
+use super::{Bvh, Isa, PacketStack, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, PACKET};
 use std::arch::x86_64::*;
 
 /// Lanes per vector; a packet is `HALVES` vectors.
@@ -87,10 +87,7 @@ impl Bvh {
             std::array::from_fn(|h| std::array::from_fn(|a| _mm256_cmp_ps::<_CMP_LT_OQ>(ld(&p.inv[a], h), zero)));
         let slack = _mm256_set1_ps(1.000_000_2);
         let inf = _mm256_set1_ps(f32::INFINITY);
-        let mut stack_c = [0u32; STACK];
-        let mut stack_m = [0u32; STACK];
-        let mut stack_t = [0u32; STACK];
-        let mut sp = 0usize;
+        let mut stack = PacketStack::new();
         let (mut cur, mut act) = (start, act);
         loop {
             if ANY {
@@ -141,41 +138,15 @@ impl Bvh {
                         ct[c] = hmin(entry).to_bits();
                     }
                 }
-                // Hit children, nearest first (any-hit: in slot order).
-                let mut order = [0usize; 4];
-                let mut k = 0;
-                for c in 0..4 {
-                    if cm[c] != 0 {
-                        let mut i = k;
-                        while !ANY && i > 0 && ct[order[i - 1]] > ct[c] {
-                            order[i] = order[i - 1];
-                            i -= 1;
-                        }
-                        order[i] = c;
-                        k += 1;
-                    }
-                }
-                if k > 0 {
-                    for j in (1..k).rev() {
-                        let c = order[j];
-                        if sp < STACK {
-                            self.prefetch(n.child[c]);
-                            stack_c[sp] = n.child[c];
-                            stack_m[sp] = cm[c];
-                            stack_t[sp] = ct[c];
-                            sp += 1;
-                        } else {
-                            self.traverse_packet_deep::<ANY>(n.child[c], cm[c], p, tmin);
-                        }
-                    }
-                    cur = n.child[order[0]];
-                    act = cm[order[0]];
+                let next = stack.push_children::<ANY>(self, n, &cm, &ct, |c, m| {
+                    self.traverse_packet_deep::<ANY>(c, m, p, tmin)
+                });
+                if let Some((c, m)) = next {
+                    (cur, act) = (c, m);
                     continue;
                 }
             } else if act != 0 && cur != EMPTY {
-                let first = (cur & LEAF_INDEX_MASK) as usize;
-                let count = ((cur & !LEAF) >> LEAF_COUNT_SHIFT) as usize + 1;
-                for pk in &self.packets[first..first + count] {
+                for pk in self.leaf_packets(cur) {
                     for l in 0..4 {
                         if pk.prim[l] == u32::MAX {
                             break;
@@ -186,19 +157,9 @@ impl Bvh {
                 }
             }
             // Pop the next entry that can still hold a closer hit for one of its lanes.
-            loop {
-                if sp == 0 {
-                    return;
-                }
-                sp -= 1;
-                let m = stack_m[sp];
+            let live = |m: u32, t: u32| {
                 if ANY {
-                    if m & !p.found != 0 {
-                        cur = stack_c[sp];
-                        act = m;
-                        break;
-                    }
-                    continue;
+                    return m & !p.found != 0;
                 }
                 // Farthest limit (as bits, as the portable body compares them) among the
                 // entry's lanes.
@@ -208,11 +169,11 @@ impl Bvh {
                     let bits = _mm256_castps_si256(ld(&p.tmax, h));
                     far = _mm256_max_epu32(far, _mm256_and_si256(bits, lanes));
                 }
-                if stack_t[sp] <= hmax_u32(far) {
-                    cur = stack_c[sp];
-                    act = m;
-                    break;
-                }
+                t <= hmax_u32(far)
+            };
+            match stack.pop(live) {
+                Some((c, m)) => (cur, act) = (c, m),
+                None => return,
             }
         }
     }
