@@ -109,7 +109,8 @@ impl Renderer {
         })
     }
 
-    /// Renders all pixels; `progress(rows_done, rows_total)` is called as rows finish.
+    /// Renders all pixels; `progress(rows_done, rows_total)` is called each time
+    /// another row's worth of pixels is done (from worker threads).
     pub fn render(&self, progress: &(dyn Fn(usize, usize) + Sync)) -> Film {
         let (w, h) = (self.width as usize, self.height as usize);
         let done = AtomicUsize::new(0);
