@@ -747,7 +747,7 @@ impl Bvh {
 }
 
 /// A packet traversal reaching a node with at most this many live lanes finishes the
-/// subtree for each of them by single-ray traversal ([`Bvh::finish_lane`]). Measured on the
+/// subtree for each of them by single-ray traversal ([`Bvh::finish_lanes`]). Measured on the
 /// bench scene's bounce packets: 3.6 → 4.4 Mrays/s (BENCHMARKS.md, session 15).
 const FINISH_ALONE: u32 = 2;
 
@@ -892,12 +892,6 @@ impl Bvh {
         self.traverse_packet_body::<ANY>(start, act, p, tmin)
     }
 
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    fn traverse_packet_avx2<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
-        self.traverse_packet_simd::<ANY>(start, act, p, tmin)
-    }
-
     #[inline(never)]
     fn traverse_packet_deep<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
         #[cfg(test)]
@@ -905,21 +899,25 @@ impl Bvh {
         self.traverse_packet_body::<ANY>(start, act, p, tmin)
     }
 
-    /// Finishes the subtree under child code `cur` for lane `r` alone, by single-ray traversal
-    /// (for `isa`), and records its hit in the packet: once a packet has only a few live
-    /// lanes, a single ray visits a node for less than a packet does. Same hits as the
-    /// packet traversal (same triangle test), within the lane's current limit.
+    /// Finishes the subtree under child code `cur` for each lane in `lanes` alone, by
+    /// single-ray traversal (for `isa`), and records the hits in the packet: once a packet has
+    /// only a few live lanes, a single ray visits a node for less than a packet does. Same
+    /// hits as the packet traversal (same triangle test), within each lane's current limit.
     #[inline(always)]
-    fn finish_lane<const ANY: bool>(&self, isa: Isa, cur: u32, r: usize, p: &mut RayPack, tmin: f32) {
-        let mut best = None;
-        self.traverse::<ANY>(isa, cur, &p.ray(r), tmin, p.tmax[r], &mut best);
-        if let Some(h) = best {
-            p.tmax[r] = h.t;
-            p.b1[r] = h.b1;
-            p.b2[r] = h.b2;
-            p.prim[r] = h.prim;
-            p.hp[r] = h.p;
-            p.found |= 1 << r;
+    fn finish_lanes<const ANY: bool>(&self, isa: Isa, cur: u32, mut lanes: u32, p: &mut RayPack, tmin: f32) {
+        while lanes != 0 {
+            let r = lanes.trailing_zeros() as usize;
+            lanes &= lanes - 1;
+            let mut best = None;
+            self.traverse::<ANY>(isa, cur, &p.ray(r), tmin, p.tmax[r], &mut best);
+            if let Some(h) = best {
+                p.tmax[r] = h.t;
+                p.b1[r] = h.b1;
+                p.b2[r] = h.b2;
+                p.prim[r] = h.prim;
+                p.hp[r] = h.p;
+                p.found |= 1 << r;
+            }
         }
     }
 
@@ -936,12 +934,7 @@ impl Bvh {
                 act &= !p.found;
             }
             if act != 0 && act.count_ones() <= FINISH_ALONE && cur != EMPTY {
-                let mut m = act;
-                while m != 0 {
-                    let r = m.trailing_zeros() as usize;
-                    m &= m - 1;
-                    self.finish_lane::<ANY>(Isa::Base, cur, r, p, tmin);
-                }
+                self.finish_lanes::<ANY>(Isa::Base, cur, act, p, tmin);
             } else if act != 0 && cur & LEAF == 0 {
                 let n = &self.nodes[cur as usize];
                 // Per child: lanes entering it and the smallest entry distance (as bits:

@@ -80,7 +80,7 @@ fn hmax_u32(v: __m256i) -> u32 {
 impl Bvh {
     /// [`Bvh::traverse_packet_body`] with AVX2 intrinsics (see the module header).
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    pub(super) fn traverse_packet_simd<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
+    pub(super) fn traverse_packet_avx2<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
         // Per half and axis: lanes whose direction is negative (near plane = the box's `hi`).
         let zero = _mm256_setzero_ps();
         let neg: [[__m256; 3]; HALVES] =
@@ -94,12 +94,7 @@ impl Bvh {
                 act &= !p.found;
             }
             if act != 0 && act.count_ones() <= FINISH_ALONE && cur != EMPTY {
-                let mut m = act;
-                while m != 0 {
-                    let r = m.trailing_zeros() as usize;
-                    m &= m - 1;
-                    self.finish_lane::<ANY>(Isa::Avx2, cur, r, p, tmin);
-                }
+                self.finish_lanes::<ANY>(Isa::Avx2, cur, act, p, tmin);
             } else if act != 0 && cur & LEAF == 0 {
                 let n = &self.nodes[cur as usize];
                 let actv = [lane_mask(act, 0), lane_mask(act, 1)];
