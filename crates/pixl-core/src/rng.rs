@@ -30,6 +30,7 @@ impl Rng {
     }
 
     /// An independent generator for `(seed, ids...)`.
+    #[inline]
     pub fn for_stream(seed: u64, ids: &[u64]) -> Self {
         let mut x = seed;
         let mut h = splitmix64(&mut x);

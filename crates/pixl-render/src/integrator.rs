@@ -21,7 +21,7 @@
 //! (per channel) — for light sampling the lobe evaluations, for the continuing path the lobe
 //! weights of the first sampled direction — and goes to `*Dir` when it comes straight from a
 //! light, to `*Ind` otherwise.
-use crate::bvh::{Ray, PACKET};
+use crate::bvh::{Isa, Ray, PACKET};
 use crate::camera::CameraRays;
 use crate::error::{RenderError, Result};
 use crate::film::{Film, PixelSum};
@@ -136,6 +136,27 @@ impl Renderer {
     /// bounce rays can share BVH traversals; each sample still draws from its own stream in
     /// the same order, so the result equals tracing them one by one.
     pub fn render_pixel(&self, x: usize, y: usize) -> PixelSum {
+        #[cfg(target_arch = "x86_64")]
+        if Isa::detect() == Isa::Avx2 {
+            // SAFETY: `Isa::detect` returns `Avx2` only after confirming every feature
+            // `render_pixel_avx2` is compiled for on this CPU.
+            return unsafe { self.render_pixel_avx2(x, y) };
+        }
+        self.render_pixel_body(x, y)
+    }
+
+    /// [`Renderer::render_pixel_body`] compiled with AVX2 (and what it implies): the shading
+    /// code inlined into it (BSDF, light sampling, pass bookkeeping) uses the VEX encodings
+    /// and `roundss` & co. FMA is enabled but rustc never contracts `a * b + c` into it, so
+    /// the result is bit-identical to the baseline build (tested).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn render_pixel_avx2(&self, x: usize, y: usize) -> PixelSum {
+        self.render_pixel_body(x, y)
+    }
+
+    #[inline(always)]
+    fn render_pixel_body(&self, x: usize, y: usize) -> PixelSum {
         let mut acc = PixelSum::default();
         let pixel = (y * self.width as usize + x) as u64;
         let spp = self.opts.spp as usize;
@@ -162,6 +183,7 @@ impl Renderer {
     /// them), then every path samples its BSDF, then all continuation rays are traced. Per
     /// path, the random numbers, the estimator and the order of its float operations are those
     /// of a path traced alone.
+    #[inline(always)]
     fn trace_packet(&self, x: usize, y: usize, pixel: u64, s0: usize, n: usize, acc: &mut PixelSum) {
         let geom = &self.geom;
         let lights = &self.lights;
@@ -330,6 +352,7 @@ impl Renderer {
     /// What the camera ray of one sample sees before any bounce — lights in view, the world,
     /// the first surface's emission, depth, normal and colour passes — written to `s`; the path
     /// state at the first hit, or `None` when nothing is hit or it cannot scatter.
+    #[inline(always)]
     fn camera_vertex(&self, camera_ray: &Ray, first: Option<SurfaceHit>, s: &mut PixelSum) -> Option<Path> {
         let lights = &self.lights;
         let t_first = first.map(|h| h.t).unwrap_or(f32::INFINITY);
@@ -554,7 +577,9 @@ mod tests {
 
     /// The lockstep render of a pixel's samples (shadow and continuation rays traced as
     /// packets) gives bit for bit what tracing each sample alone gives (one lane per call,
-    /// every ray traced by single-ray traversal), for full and partial packets.
+    /// every ray traced by single-ray traversal), for full and partial packets. On AVX2 CPUs
+    /// this also compares the two builds of the shading code: `render_pixel` runs the AVX2
+    /// one, `trace_packet` called from here the baseline one.
     #[test]
     fn lockstep_packets_equal_paths_traced_one_by_one() {
         let scene = Scene::from_toml_str(SCENE).expect("scene");

@@ -377,6 +377,7 @@ impl Lights {
     }
 
     /// Samples one light for the shading point `p`.
+    #[inline]
     pub fn sample(&self, geom: &Geometry, p: V3, u_pick: f32, u1: f32, u2: f32) -> Option<LightSample> {
         if self.dist.is_empty() {
             return None;
@@ -524,6 +525,7 @@ impl Lights {
     }
 
     /// The world's radiance along `d` and the light-sampling pdf of that direction.
+    #[inline]
     pub fn env_hit(&self, d: V3) -> Option<(V3, f32)> {
         let env = self.env.as_ref()?;
         let pdf = self.env_index.map(|i| self.dist.pmf(i) / (4.0 * PI)).unwrap_or(0.0);

@@ -166,6 +166,7 @@ fn schlick(f0: V3, cos: f32) -> V3 {
 }
 
 /// Unpolarised Fresnel reflectance of a dielectric interface; `eta = n_t / n_i`.
+#[inline]
 pub fn fresnel_dielectric(cos_i: f32, eta: f32) -> f32 {
     let cos_i = cos_i.clamp(0.0, 1.0);
     let sin2_t = (1.0 - cos_i * cos_i) / (eta * eta);
@@ -180,6 +181,7 @@ pub fn fresnel_dielectric(cos_i: f32, eta: f32) -> f32 {
 
 impl Bsdf {
     /// The BSDF of material `m` at `hit` for the outgoing direction `wo` (unit, pointing away).
+    #[inline]
     pub fn new(m: &MaterialData, hit: &SurfaceHit, wo: V3) -> Bsdf {
         let mut base = m.base;
         if let Some(t) = &m.base_tex {
@@ -307,6 +309,7 @@ impl Bsdf {
     }
 
     /// Evaluates the non-delta lobes for the incident direction `wi` (world, unit).
+    #[inline]
     pub fn eval(&self, wi_world: V3) -> BsdfEval {
         let wi = self.frame.to_local(wi_world);
         let wo = self.wo_local;
@@ -340,6 +343,7 @@ impl Bsdf {
     }
 
     /// Samples an incident direction with uniforms `(u_lobe, u1, u2)`.
+    #[inline]
     pub fn sample(&self, u_lobe: f32, u1: f32, u2: f32) -> Option<BsdfSample> {
         let wo = self.wo_local;
         if self.is_black() || wo.z <= 0.0 {

@@ -99,6 +99,7 @@ pub fn ggx_g2(wo: V3, wi: V3, alpha: f32) -> f32 {
 
 /// Samples a GGX visible normal for `wo` (local, `wo.z > 0`) (Heitz 2018); its pdf is
 /// `G1(wo) · max(0, wo·h) · D(h) / wo.z`.
+#[inline]
 pub fn ggx_sample_vndf(wo: V3, alpha: f32, u1: f32, u2: f32) -> V3 {
     let vh = V3::new(alpha * wo.x, alpha * wo.y, wo.z).normalize();
     let lensq = vh.x * vh.x + vh.y * vh.y;
@@ -164,6 +165,7 @@ impl Distribution1D {
     }
 
     /// Index with probability `pmf(i)`, and `u` remapped to [0, 1) within that bin.
+    #[inline]
     pub fn sample(&self, u: f32) -> (usize, f32) {
         let i = self
             .cdf

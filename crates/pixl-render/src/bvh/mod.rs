@@ -101,27 +101,31 @@ struct Tri4 {
     prim: [u32; 4],
 }
 
-/// A 4-wide interior node: child boxes as rows `lo_x, lo_y, lo_z, hi_x, hi_y, hi_z` of four
-/// lanes, and the children ([`EMPTY`], an interior node index, or [`LEAF`] | packet fields).
+/// Children per interior node.
+const NW: usize = 4;
+
+/// An `NW`-wide interior node: child boxes as rows `lo_x, lo_y, lo_z, hi_x, hi_y, hi_z` of
+/// `NW` lanes, and the children ([`EMPTY`], an interior node index, or [`LEAF`] | packet
+/// fields).
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
-struct Node4 {
-    b: [[f32; 4]; 6],
-    child: [u32; 4],
+struct Node {
+    b: [[f32; NW]; 6],
+    child: [u32; NW],
 }
 
-impl Node4 {
+impl Node {
     /// No children: empty boxes (`lo = +∞`, `hi = −∞`) that no ray enters.
-    const EMPTY: Node4 = Node4 {
+    const EMPTY: Node = Node {
         b: [
-            [f32::INFINITY; 4],
-            [f32::INFINITY; 4],
-            [f32::INFINITY; 4],
-            [f32::NEG_INFINITY; 4],
-            [f32::NEG_INFINITY; 4],
-            [f32::NEG_INFINITY; 4],
+            [f32::INFINITY; NW],
+            [f32::INFINITY; NW],
+            [f32::INFINITY; NW],
+            [f32::NEG_INFINITY; NW],
+            [f32::NEG_INFINITY; NW],
+            [f32::NEG_INFINITY; NW],
         ],
-        child: [EMPTY; 4],
+        child: [EMPTY; NW],
     };
 }
 
@@ -134,7 +138,7 @@ const EMPTY: u32 = u32::MAX;
 
 #[derive(Clone, Debug, Default)]
 pub struct Bvh {
-    nodes: Vec<Node4>,
+    nodes: Vec<Node>,
     packets: Vec<Tri4>,
 }
 
@@ -325,7 +329,7 @@ impl Bvh {
         let sorted: Vec<Tri> = idx.iter().map(|&i| tris[i as usize]).collect();
         if root.leaf.is_some() {
             // A single leaf still gets a node, so traversal always starts at node 0.
-            bvh.nodes.push(Node4::EMPTY);
+            bvh.nodes.push(Node::EMPTY);
             bvh.set_child(0, 0, &root, &sorted);
         } else {
             bvh.collapse(&root, &sorted);
@@ -340,7 +344,7 @@ impl Bvh {
             Some(k) => vec![&k.0, &k.1],
             None => vec![b],
         };
-        while kids.len() < 4 {
+        while kids.len() < NW {
             let open = kids
                 .iter()
                 .enumerate()
@@ -353,7 +357,7 @@ impl Bvh {
             kids.insert(i + 1, &k.1);
         }
         let ni = self.nodes.len();
-        self.nodes.push(Node4::EMPTY);
+        self.nodes.push(Node::EMPTY);
         for (slot, k) in kids.iter().enumerate() {
             self.set_child(ni, slot, k, tris);
         }
@@ -502,9 +506,9 @@ impl Bvh {
                 let n = &self.nodes[cur as usize];
                 let (nx, ny, nz) = (&n.b[near[0]], &n.b[near[1]], &n.b[near[2]]);
                 let (fx, fy, fz) = (&n.b[far[0]], &n.b[far[1]], &n.b[far[2]]);
-                let mut tn = [0f32; 4];
-                let mut hit = [false; 4];
-                for i in 0..4 {
+                let mut tn = [0f32; NW];
+                let mut hit = [false; NW];
+                for i in 0..NW {
                     let t0x = (nx[i] - o[0]) * inv[0];
                     let t0y = (ny[i] - o[1]) * inv[1];
                     let t0z = (nz[i] - o[2]) * inv[2];
@@ -523,7 +527,7 @@ impl Bvh {
                     tn[i] = t0;
                     hit[i] = t0 <= t1 * 1.000_000_2;
                 }
-                let mask = (hit[0] as u32) | (hit[1] as u32) << 1 | (hit[2] as u32) << 2 | (hit[3] as u32) << 3;
+                let mask = hit.iter().enumerate().fold(0u32, |m, (i, &h)| m | (h as u32) << i);
                 match mask.count_ones() {
                     0 => {}
                     1 => {
@@ -543,8 +547,8 @@ impl Bvh {
                     }
                     k => {
                         // Hit children, then (closest-hit only) sorted nearest first.
-                        let mut c = [0u32; 4];
-                        let mut t = [0f32; 4];
+                        let mut c = [0u32; NW];
+                        let mut t = [0f32; NW];
                         let mut m = mask;
                         for j in 0..k as usize {
                             let i = m.trailing_zeros() as usize;
@@ -638,7 +642,7 @@ impl Bvh {
         {
             let p: *const u8 = if c & LEAF == 0 {
                 match self.nodes.get(c as usize) {
-                    Some(n) => (n as *const Node4).cast(),
+                    Some(n) => (n as *const Node).cast(),
                     None => return,
                 }
             } else {
@@ -652,8 +656,10 @@ impl Bvh {
             // the program, and `p` points into a live allocation anyway (it comes from a
             // reference to an element of `self.nodes` / `self.packets`).
             unsafe {
-                _mm_prefetch::<_MM_HINT_T0>(p.cast());
-                _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64).cast());
+                // Every cache line of a node (a leaf's first packet spans three).
+                for line in 0..std::mem::size_of::<Node>().div_ceil(64) {
+                    _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64 * line).cast());
+                }
             }
         }
         #[cfg(not(target_arch = "x86_64"))]
@@ -688,14 +694,14 @@ impl PacketStack {
     fn push_children<const ANY: bool>(
         &mut self,
         bvh: &Bvh,
-        n: &Node4,
-        cm: &[u32; 4],
-        ct: &[u32; 4],
+        n: &Node,
+        cm: &[u32; NW],
+        ct: &[u32; NW],
         mut overflow: impl FnMut(u32, u32),
     ) -> Option<(u32, u32)> {
-        let mut order = [0usize; 4];
+        let mut order = [0usize; NW];
         let mut k = 0;
-        for c in 0..4 {
+        for c in 0..NW {
             if cm[c] != 0 {
                 let mut i = k;
                 while !ANY && i > 0 && ct[order[i - 1]] > ct[c] {
@@ -939,9 +945,9 @@ impl Bvh {
                 let n = &self.nodes[cur as usize];
                 // Per child: lanes entering it and the smallest entry distance (as bits:
                 // entry distances are ≥ 0, so their bit patterns order as the floats do).
-                let mut cm = [0u32; 4];
-                let mut ct = [u32::MAX; 4];
-                for c in 0..4 {
+                let mut cm = [0u32; NW];
+                let mut ct = [u32::MAX; NW];
+                for c in 0..NW {
                     let (lx, ly, lz) = (n.b[0][c], n.b[1][c], n.b[2][c]);
                     let (hx, hy, hz) = (n.b[3][c], n.b[4][c], n.b[5][c]);
                     let mut hit = [false; PACKET];

@@ -15,7 +15,7 @@
 //! node on the benchmark); this form tests a node's four children against 16 rays in ~40 ns,
 //! which makes packets of a pixel's divergent bounce and shadow rays cheaper than tracing them
 //! one by one (BENCHMARKS.md, session 15).
-use super::{Bvh, Isa, PacketStack, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, PACKET};
+use super::{Bvh, Isa, PacketStack, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, NW, PACKET};
 use std::arch::x86_64::*;
 
 /// Lanes per vector; a packet is `HALVES` vectors.
@@ -98,9 +98,9 @@ impl Bvh {
             } else if act != 0 && cur & LEAF == 0 {
                 let n = &self.nodes[cur as usize];
                 let actv = [lane_mask(act, 0), lane_mask(act, 1)];
-                let mut cm = [0u32; 4];
-                let mut ct = [u32::MAX; 4];
-                for c in 0..4 {
+                let mut cm = [0u32; NW];
+                let mut ct = [u32::MAX; NW];
+                for c in 0..NW {
                     let b = |row: usize| _mm256_set1_ps(n.b[row][c]);
                     let (lx, ly, lz, hx, hy, hz) = (b(0), b(1), b(2), b(3), b(4), b(5));
                     let mut m = 0u32;

@@ -47,6 +47,7 @@ pub struct GgxAlbedo<'a> {
 }
 
 /// The baked tables.
+#[inline]
 pub fn tables() -> &'static GgxAlbedo<'static> {
     static T: GgxAlbedo<'static> = GgxAlbedo {
         e: &ggx_tables::E,
@@ -171,11 +172,13 @@ pub fn compute(strata: usize) -> [Vec<f32>; 4] {
 
 impl GgxAlbedo<'_> {
     /// `E(r, μ)` (interpolated).
+    #[inline]
     pub fn e(&self, rough: f32, mu: f32) -> f32 {
         lerp2(self.e, NE, rough, mu)
     }
 
     /// `Ē(r)` (interpolated).
+    #[inline]
     pub fn e_avg(&self, rough: f32) -> f32 {
         let (i0, i1, t) = cell(rough, NE);
         self.e_avg[i0] * (1.0 - t) + self.e_avg[i1] * t
@@ -187,6 +190,7 @@ impl GgxAlbedo<'_> {
     }
 
     /// [`GgxAlbedo::s_dielectric`] with the `η` slice located beforehand (per material).
+    #[inline]
     pub fn s_dielectric_at(&self, rough: f32, mu: f32, eta: EtaCell) -> f32 {
         let (z0, z1, t) = eta.0;
         let n2 = NS * NS;
@@ -198,6 +202,7 @@ impl GgxAlbedo<'_> {
     }
 
     /// `S5(r, μ)` (interpolated).
+    #[inline]
     pub fn s_schlick(&self, rough: f32, mu: f32) -> f32 {
         lerp2(self.s5, NS, rough, mu)
     }
