@@ -293,7 +293,7 @@ impl Geometry {
     /// [`Geometry::intersect`] for each of `rays` (far limits `tmax`), into `out`, sharing BVH
     /// traversals between the rays (see [`Bvh::intersect_packet`]): for coherent rays such as
     /// the samples of one pixel. Pairs beyond the shortest slice are not traced.
-    #[inline]
+    #[inline(always)]
     pub fn intersect_packet(&self, rays: &[Ray], tmin: f32, tmax: &[f32], out: &mut [Option<SurfaceHit>]) {
         let mut hits = [None; crate::bvh::PACKET];
         for ((rays, tmax), out) in rays

@@ -377,7 +377,7 @@ impl Lights {
     }
 
     /// Samples one light for the shading point `p`.
-    #[inline]
+    #[inline(always)]
     pub fn sample(&self, geom: &Geometry, p: V3, u_pick: f32, u1: f32, u2: f32) -> Option<LightSample> {
         if self.dist.is_empty() {
             return None;

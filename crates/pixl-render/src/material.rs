@@ -181,7 +181,7 @@ pub fn fresnel_dielectric(cos_i: f32, eta: f32) -> f32 {
 
 impl Bsdf {
     /// The BSDF of material `m` at `hit` for the outgoing direction `wo` (unit, pointing away).
-    #[inline]
+    #[inline(always)]
     pub fn new(m: &MaterialData, hit: &SurfaceHit, wo: V3) -> Bsdf {
         let mut base = m.base;
         if let Some(t) = &m.base_tex {
@@ -309,7 +309,7 @@ impl Bsdf {
     }
 
     /// Evaluates the non-delta lobes for the incident direction `wi` (world, unit).
-    #[inline]
+    #[inline(always)]
     pub fn eval(&self, wi_world: V3) -> BsdfEval {
         let wi = self.frame.to_local(wi_world);
         let wo = self.wo_local;
@@ -343,7 +343,7 @@ impl Bsdf {
     }
 
     /// Samples an incident direction with uniforms `(u_lobe, u1, u2)`.
-    #[inline]
+    #[inline(always)]
     pub fn sample(&self, u_lobe: f32, u1: f32, u2: f32) -> Option<BsdfSample> {
         let wo = self.wo_local;
         if self.is_black() || wo.z <= 0.0 {
