@@ -302,10 +302,33 @@ impl Geometry {
             .zip(out.chunks_mut(crate::bvh::PACKET))
         {
             self.bvh.intersect_packet(rays, tmin, tmax, &mut hits);
+            // Start loading every hit's attributes before using the first (they are scattered
+            // over a large array: each is a likely cache miss).
+            for h in hits.iter().flatten() {
+                self.prefetch_attrs(h.prim);
+            }
             for (o, h) in out.iter_mut().zip(&hits).take(rays.len().min(tmax.len())) {
                 *o = h.map(|h| self.surface(h));
             }
         }
+    }
+
+    /// Hints the CPU to load the attributes of triangle `prim` (no effect if out of range).
+    #[inline(always)]
+    fn prefetch_attrs(&self, prim: u32) {
+        #[cfg(target_arch = "x86_64")]
+        if let Some(a) = self.attrs.get(prim as usize) {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            let p: *const u8 = (a as *const TriAttr).cast();
+            // SAFETY: a prefetch is only a hint: it never faults and has no visible effect;
+            // both addresses lie within the element `a` refers to.
+            unsafe {
+                _mm_prefetch::<_MM_HINT_T0>(p.cast());
+                _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(std::mem::size_of::<TriAttr>() - 1).cast());
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = prim;
     }
 
     /// The shading data at a BVH hit.
