@@ -198,8 +198,6 @@ impl Bsdf {
         let roughness = roughness.clamp(0.0, 1.0);
         let metallic = metallic.clamp(0.0, 1.0);
         let base = base.max(V3::ZERO);
-        // Transmission tint per interface (Cycles: `sqrt(base_color)`).
-        let tint = V3::new(base.x.sqrt(), base.y.sqrt(), base.z.sqrt());
         // Outward orientation from the shading normal; entering if wo is on the outside.
         let ng_out = if hit.ng.dot(hit.ns) < 0.0 { -hit.ng } else { hit.ng };
         let entering = wo.dot(ng_out) >= 0.0;
@@ -228,6 +226,13 @@ impl Bsdf {
         };
         let w = 1.0 - metallic;
         let trans_w = w * trans;
+        // Transmission tint per interface (Cycles: `sqrt(base_color)`); only the transmission
+        // closure uses it (`colors[2]` is `tint · 0 = +0` without one, as with the real tint).
+        let tint = if trans_w > 0.0 {
+            V3::new(base.x.sqrt(), base.y.sqrt(), base.z.sqrt())
+        } else {
+            V3::ZERO
+        };
         let w = w * (1.0 - trans);
         // Dielectric specular coat (weight `w`) over the diffuse base.
         let Coat {
