@@ -30,7 +30,8 @@
 //!   most `FINISH_ALONE` (2) live lanes, each finishes that subtree by single-ray traversal
 //!   (cheaper per node than a nearly empty packet). Per lane, results equal the single-ray
 //!   query's (same triangle test), up to ties.
-//! - `PIXL_ISA=base` in the environment forces the portable code (for A/B measurements).
+//! - `PIXL_ISA=base` in the environment forces the portable code (for A/B measurements; it also
+//!   caps the renderer's pixel loop, [`crate::integrator::Renderer::render_pixel`]).
 //!
 //! Why our own rather than a crate: the renderer needs a few hundred lines of BVH, must be
 //! deterministic and is tuned to this triangle layout; the crates we looked at (`bvh`, `obvhs`)
