@@ -303,7 +303,9 @@ impl Geometry {
         {
             self.bvh.intersect_packet(rays, tmin, tmax, &mut hits);
             // Start loading every hit's attributes before using the first (they are scattered
-            // over a large array: each is a likely cache miss).
+            // over a large array: each is a likely cache miss). The whole fixed-size array, so
+            // the loop unrolls; entries past this chunk's rays, stale from an earlier chunk,
+            // only cost a useless hint.
             for h in hits.iter().flatten() {
                 self.prefetch_attrs(h.prim);
             }
@@ -313,22 +315,15 @@ impl Geometry {
         }
     }
 
-    /// Hints the CPU to load the attributes of triangle `prim` (no effect if out of range).
+    /// Hints the CPU to load the attributes of triangle `prim` (no effect if out of range):
+    /// the cache lines of its first and last byte.
     #[inline(always)]
     fn prefetch_attrs(&self, prim: u32) {
-        #[cfg(target_arch = "x86_64")]
         if let Some(a) = self.attrs.get(prim as usize) {
-            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
             let p: *const u8 = (a as *const TriAttr).cast();
-            // SAFETY: a prefetch is only a hint: it never faults and has no visible effect;
-            // both addresses lie within the element `a` refers to.
-            unsafe {
-                _mm_prefetch::<_MM_HINT_T0>(p.cast());
-                _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(std::mem::size_of::<TriAttr>() - 1).cast());
-            }
+            crate::math::prefetch(p);
+            crate::math::prefetch(p.wrapping_add(std::mem::size_of::<TriAttr>() - 1));
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = prim;
     }
 
     /// The shading data at a BVH hit.

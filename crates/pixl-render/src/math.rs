@@ -191,3 +191,18 @@ impl Frame {
         self.t * v.x + self.b * v.y + self.n * v.z
     }
 }
+
+/// Hints the CPU to start loading the cache line holding `p` (into all cache levels). Only a
+/// hint: it never faults, whatever `p` is, and changes no value the program can see; a no-op
+/// off x86-64.
+#[inline(always)]
+pub fn prefetch<T>(p: *const T) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: `prefetcht0` performs no access that can fault or be observed: it is valid for
+    // any address, dangling or not.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p.cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}

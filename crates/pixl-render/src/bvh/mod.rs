@@ -641,32 +641,21 @@ impl Bvh {
     /// traversal is bound by the latency of these loads; pushed siblings load meanwhile).
     #[inline(always)]
     fn prefetch(&self, c: u32) {
-        #[cfg(target_arch = "x86_64")]
-        {
-            let p: *const u8 = if c & LEAF == 0 {
-                match self.nodes.get(c as usize) {
-                    Some(n) => (n as *const Node).cast(),
-                    None => return,
-                }
-            } else {
-                match self.packets.get((c & LEAF_INDEX_MASK) as usize) {
-                    Some(t) => (t as *const Tri4).cast(),
-                    None => return,
-                }
-            };
-            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-            // SAFETY: a prefetch is only a hint: it never faults and has no effect visible to
-            // the program, and `p` points into a live allocation anyway (it comes from a
-            // reference to an element of `self.nodes` / `self.packets`).
-            unsafe {
-                // The node's cache lines (for a leaf, as many of its first packet's).
-                for line in 0..std::mem::size_of::<Node>().div_ceil(64) {
-                    _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(64 * line).cast());
-                }
+        let p: *const u8 = if c & LEAF == 0 {
+            match self.nodes.get(c as usize) {
+                Some(n) => (n as *const Node).cast(),
+                None => return,
             }
+        } else {
+            match self.packets.get((c & LEAF_INDEX_MASK) as usize) {
+                Some(t) => (t as *const Tri4).cast(),
+                None => return,
+            }
+        };
+        // The node's cache lines (for a leaf, as many of its first packet's).
+        for line in 0..std::mem::size_of::<Node>().div_ceil(64) {
+            crate::math::prefetch(p.wrapping_add(64 * line));
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = c;
     }
 }
 
