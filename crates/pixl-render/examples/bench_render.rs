@@ -5,7 +5,7 @@
 //! `cargo run --release -p pixl-render --example bench_render [-- GRID SPP [render-only [REPEAT]]]`
 //! (GRID = vertices per side, default 500 → 498 002 triangles; REPEAT renders the image that
 //! many times and also prints the minimum and median wall time — the VM's host adds ±10 % from
-//! run to run; `render-only` skips the ray
+//! run to run; `PIXL_BENCH_WIDTH=N` renders N×N pixels instead; `render-only` skips the ray
 //! timings, e.g. for profiling).
 //!
 //! After the render it also times ray casting alone on the main thread (a load-independent
@@ -80,8 +80,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         image: None,
         rotation_deg: 0.0,
     });
+    // `PIXL_BENCH_WIDTH=N` renders N×N instead (same scene and camera), e.g. for a quick
+    // instruction count under callgrind.
+    let width = std::env::var("PIXL_BENCH_WIDTH").ok().and_then(|v| v.parse().ok());
     let opts = RenderOptions {
         spp,
+        width,
+        height: width,
         ..Default::default()
     };
     let (t0, c0) = (Instant::now(), process_cpu_s());

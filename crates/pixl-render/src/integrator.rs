@@ -32,7 +32,6 @@ use crate::math::V3;
 use crate::sampling::power_heuristic;
 use crate::scene::Scene;
 use pixl_core::Rng;
-use rayon::prelude::*;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// How to render.
@@ -109,26 +108,17 @@ impl Renderer {
         })
     }
 
-    /// Renders all pixels; `progress(rows_done, rows_total)` is called each time
-    /// another row's worth of pixels is done (from worker threads).
+    /// Renders all pixels (rows in parallel, each turned into the film's passes as soon as it
+    /// is done); `progress(rows_done, rows_total)` is called after each row (from worker threads).
     pub fn render(&self, progress: &(dyn Fn(usize, usize) + Sync)) -> Film {
         let (w, h) = (self.width as usize, self.height as usize);
         let done = AtomicUsize::new(0);
-        // Collected in parallel straight into the final buffer (no serial initialisation of
-        // ~40 MB before the render, no per-row vectors to gather); at least a row per task.
-        let sums: Vec<PixelSum> = (0..w * h)
-            .into_par_iter()
-            .with_min_len(w)
-            .map(|i| {
-                let sum = self.render_pixel(i % w, i / w);
-                let d = done.fetch_add(1, Ordering::Relaxed) + 1;
-                if d.is_multiple_of(w) {
-                    progress(d / w, h);
-                }
-                sum
-            })
-            .collect();
-        Film::from_sums(w, h, self.opts.spp, &sums)
+        Film::from_rows(w, h, self.opts.spp, &|y, sums| {
+            for (x, s) in sums.iter_mut().enumerate() {
+                *s = self.render_pixel(x, y);
+            }
+            progress(done.fetch_add(1, Ordering::Relaxed) + 1, h);
+        })
     }
 
     /// The sums of all samples of pixel `(x, y)`. Up to [`PACKET`] samples advance together,
