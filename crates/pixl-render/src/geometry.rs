@@ -5,7 +5,7 @@
 //! analytic smooth normals; `cuboid` has flat faces and outward normals; `quad` lies in the XY
 //! plane facing +Z with UV `(0, 0)` at its `(−x, +y)` corner. Normals are transformed by the
 //! inverse transpose of the object matrix.
-use crate::bvh::{Bvh, Hit, Ray, Tri};
+use crate::bvh::{Bvh, Hit, Ray, RayPack, Tri};
 use crate::error::{RenderError, Result};
 use crate::material::Coat;
 use crate::math::V3;
@@ -311,6 +311,26 @@ impl Geometry {
             }
             for (o, h) in out.iter_mut().zip(&hits).take(rays.len().min(tmax.len())) {
                 *o = h.map(|h| self.surface(h));
+            }
+        }
+    }
+
+    /// The closest hits of the lanes of `p` in `act` (see [`Bvh::intersect_pack`]), each
+    /// passed with its lane to `out` as a [`SurfaceHit`] (lanes without a hit: `None`).
+    #[inline(always)]
+    pub fn intersect_pack(&self, p: &mut RayPack, act: u32, tmin: f32, mut out: impl FnMut(usize, Option<SurfaceHit>)) {
+        self.bvh.intersect_pack(p, act, tmin);
+        // As in `intersect_packet`: start loading every hit's attributes before the first.
+        for r in 0..crate::bvh::PACKET {
+            if act >> r & 1 != 0 {
+                if let Some(h) = p.hit(r) {
+                    self.prefetch_attrs(h.prim);
+                }
+            }
+        }
+        for r in 0..crate::bvh::PACKET {
+            if act >> r & 1 != 0 {
+                out(r, p.hit(r).map(|h| self.surface(h)));
             }
         }
     }

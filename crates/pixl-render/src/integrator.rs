@@ -21,7 +21,7 @@
 //! (per channel) — for light sampling the lobe evaluations, for the continuing path the lobe
 //! weights of the first sampled direction — and goes to `*Dir` when it comes straight from a
 //! light, to `*Ind` otherwise.
-use crate::bvh::{Isa, Ray, PACKET};
+use crate::bvh::{Isa, Ray, RayPack, PACKET};
 use crate::camera::CameraRays;
 use crate::error::{RenderError, Result};
 use crate::film::{Film, PixelSum};
@@ -181,19 +181,19 @@ impl Renderer {
         // Streams and camera rays for the `n` samples of this packet only (a low-spp render
         // would otherwise pay for all PACKET lanes).
         let mut rngs: [Rng; PACKET] = std::array::from_fn(|_| Rng::from_state([0; 4]));
-        let mut rays = [Ray::new(V3::ZERO, V3::ZERO); PACKET];
+        // Camera rays (lane = slot), one packet whatever their number.
+        let mut camera = Batch::new();
         for j in 0..n {
             let rng = &mut rngs[j];
             *rng = Rng::for_stream(self.opts.seed, &[pixel, (s0 + j) as u64]);
             let (u, v) = (rng.f32(), rng.f32());
-            rays[j] = self.camera.ray(x as f32 + u, y as f32 + v);
+            camera.push(j, self.camera.ray(x as f32 + u, y as f32 + v), f32::INFINITY);
         }
-        let far = [f32::INFINITY; PACKET];
         let mut hits = [None; PACKET];
-        geom.intersect_packet(&rays[..n], 0.0, &far[..n], &mut hits[..n]);
+        camera.intersect(geom, 1, &mut hits);
         let mut paths: [Option<Path>; PACKET] = std::array::from_fn(|_| None);
         for j in 0..n {
-            paths[j] = self.camera_vertex(&rays[j], hits[j], &mut sums[j]);
+            paths[j] = self.camera_vertex(&camera.pack.ray(j), hits[j], &mut sums[j]);
         }
         let max_b = self.opts.max_bounces;
         // Per lane: the light the pending shadow ray carries, if unoccluded.
@@ -285,13 +285,13 @@ impl Renderer {
             if bounce.len == 0 {
                 break;
             }
-            bounce.intersect(geom, &mut next);
+            bounce.intersect(geom, MIN_BOUNCE_PACKET, &mut next);
             // Emission found by the continuation rays, and the next vertex.
             for j in 0..n {
                 let (Some(path), Some(bs)) = (&mut paths[j], samples[j]) else {
                     continue;
                 };
-                let ray = &bounce.rays[bounce.slot[j] as usize];
+                let ray = &bounce.ray_of(j);
                 let s = &mut sums[j];
                 let next = next[j];
                 let t_next = next.map(|h| h.t).unwrap_or(f32::INFINITY);
@@ -402,10 +402,10 @@ struct Nee {
 const MIN_SHADOW_PACKET: usize = 4;
 const MIN_BOUNCE_PACKET: usize = 8;
 
-/// The rays of some lanes of a packet of paths, compacted, for one BVH query.
+/// The rays of some lanes of a packet of paths, compacted into the first slots of a
+/// [`RayPack`], for one BVH query.
 struct Batch {
-    rays: [Ray; PACKET],
-    tmax: [f32; PACKET],
+    pack: RayPack,
     /// Lane of each ray, and slot of each lane's ray.
     lane: [u8; PACKET],
     slot: [u8; PACKET],
@@ -415,55 +415,61 @@ struct Batch {
 impl Batch {
     fn new() -> Batch {
         Batch {
-            rays: [Ray::new(V3::ZERO, V3::ZERO); PACKET],
-            tmax: [0.0; PACKET],
+            pack: RayPack::empty(),
             lane: [0; PACKET],
             slot: [0; PACKET],
             len: 0,
         }
     }
 
+    #[inline(always)]
     fn push(&mut self, lane: usize, ray: Ray, tmax: f32) {
-        self.rays[self.len] = ray;
-        self.tmax[self.len] = tmax;
+        self.pack.set(self.len, &ray, tmax);
         self.lane[self.len] = lane as u8;
         self.slot[lane] = self.len as u8;
         self.len += 1;
     }
 
+    /// The ray of lane `lane` (which must have pushed one).
+    #[inline(always)]
+    fn ray_of(&self, lane: usize) -> Ray {
+        self.pack.ray(self.slot[lane] as usize)
+    }
+
+    /// Mask of the filled slots.
+    fn slots(&self) -> u32 {
+        (1u32 << self.len) - 1
+    }
+
     /// Per lane, whether its ray is occluded (`false` for lanes without a ray).
-    fn occluded(&self, geom: &Geometry) -> [bool; PACKET] {
-        let mut by_slot = [false; PACKET];
+    fn occluded(&mut self, geom: &Geometry) -> [bool; PACKET] {
+        let mut out = [false; PACKET];
         let k = self.len;
         if k >= MIN_SHADOW_PACKET {
-            geom.bvh
-                .occluded_packet(&self.rays[..k], 0.0, &self.tmax[..k], &mut by_slot[..k]);
+            let slots = self.slots();
+            geom.bvh.occluded_pack(&mut self.pack, slots, 0.0);
+            for i in 0..k {
+                out[self.lane[i] as usize] = self.pack.found(i);
+            }
         } else {
             for i in 0..k {
-                by_slot[i] = geom.occluded(&self.rays[i], 0.0, self.tmax[i]);
+                out[self.lane[i] as usize] = geom.occluded(&self.pack.ray(i), 0.0, self.pack.tmax(i));
             }
-        }
-        let mut out = [false; PACKET];
-        for i in 0..k {
-            out[self.lane[i] as usize] = by_slot[i];
         }
         out
     }
 
     /// The closest hit of each ray, written to `out` at its lane (lanes without a ray are
-    /// left as they are).
-    fn intersect(&self, geom: &Geometry, out: &mut [Option<SurfaceHit>; PACKET]) {
-        let mut by_slot = [None; PACKET];
+    /// left as they are); batches of fewer than `min_packet` rays are traced one by one.
+    fn intersect(&mut self, geom: &Geometry, min_packet: usize, out: &mut [Option<SurfaceHit>; PACKET]) {
         let k = self.len;
-        if k >= MIN_BOUNCE_PACKET {
-            geom.intersect_packet(&self.rays[..k], 0.0, &self.tmax[..k], &mut by_slot[..k]);
+        if k >= min_packet {
+            let (slots, lane) = (self.slots(), &self.lane);
+            geom.intersect_pack(&mut self.pack, slots, 0.0, |i, h| out[lane[i] as usize] = h);
         } else {
             for i in 0..k {
-                by_slot[i] = geom.intersect(&self.rays[i], 0.0, self.tmax[i]);
+                out[self.lane[i] as usize] = geom.intersect(&self.pack.ray(i), 0.0, self.pack.tmax(i));
             }
-        }
-        for i in 0..k {
-            out[self.lane[i] as usize] = by_slot[i];
         }
     }
 }

@@ -751,11 +751,17 @@ const FINISH_ALONE: u32 = 2;
 
 /// Rays per packet of [`Bvh::intersect_packet`] / [`Bvh::occluded_packet`].
 pub const PACKET: usize = 16;
+/// Every lane of a [`RayPack`], as a mask.
+const PACK_LANES: u32 = (1 << PACKET) - 1;
 
-/// Up to [`PACKET`] rays, structure of arrays, for packet traversal; unused lanes are inactive.
+/// Up to [`PACKET`] rays, structure of arrays, for packet traversal ([`Bvh::intersect_pack`],
+/// [`Bvh::occluded_pack`]): only the lanes of the mask given to a query take part; the others
+/// may hold anything. Filled lane by lane with [`RayPack::set`], so a caller that gathers
+/// rays (the integrator's batches) writes them here directly, without an array of [`Ray`]s
+/// to transpose.
 #[derive(Clone, Copy)]
 #[repr(C, align(64))]
-struct RayPack {
+pub struct RayPack {
     o: [[f32; PACKET]; 3],
     d: [[f32; PACKET]; 3],
     inv: [[f32; PACKET]; 3],
@@ -789,19 +795,9 @@ impl RayPack {
         }
     }
 
-    /// The ray of lane `r`.
-    #[inline(always)]
-    fn ray(&self, r: usize) -> Ray {
-        Ray {
-            o: V3::new(self.o[0][r], self.o[1][r], self.o[2][r]),
-            d: V3::new(self.d[0][r], self.d[1][r], self.d[2][r]),
-            inv_d: V3::new(self.inv[0][r], self.inv[1][r], self.inv[2][r]),
-            skip: self.skip[r],
-        }
-    }
-
-    fn new(rays: &[Ray], tmax: &[f32]) -> (RayPack, u32) {
-        let mut p = RayPack {
+    /// A pack with every lane zeroed and no hit.
+    pub fn empty() -> RayPack {
+        RayPack {
             o: [[0.0; PACKET]; 3],
             d: [[0.0; PACKET]; 3],
             inv: [[0.0; PACKET]; 3],
@@ -813,17 +809,62 @@ impl RayPack {
             prim: [0; PACKET],
             hp: [V3::ZERO; PACKET],
             found: 0,
-        };
+        }
+    }
+
+    /// Puts `ray` with far limit `tmax` in lane `r` (`r < PACKET`).
+    #[inline(always)]
+    pub fn set(&mut self, r: usize, ray: &Ray, tmax: f32) {
+        for a in 0..3 {
+            self.o[a][r] = ray.o[a];
+            self.d[a][r] = ray.d[a];
+            self.inv[a][r] = ray.inv_d[a];
+            self.neg[a][r] = ray.inv_d[a] < 0.0;
+        }
+        self.skip[r] = ray.skip;
+        self.tmax[r] = tmax;
+    }
+
+    /// The far limit of lane `r`: as set, or after a closest-hit query the hit distance.
+    #[inline(always)]
+    pub fn tmax(&self, r: usize) -> f32 {
+        self.tmax[r]
+    }
+
+    /// Lane `r`'s closest hit after [`Bvh::intersect_pack`] (`None` if it found none).
+    #[inline(always)]
+    pub fn hit(&self, r: usize) -> Option<Hit> {
+        (self.found >> r & 1 != 0).then(|| Hit {
+            t: self.tmax[r],
+            b1: self.b1[r],
+            b2: self.b2[r],
+            prim: self.prim[r],
+            p: self.hp[r],
+        })
+    }
+
+    /// Whether lane `r` found a hit in the last query.
+    #[inline(always)]
+    pub fn found(&self, r: usize) -> bool {
+        self.found >> r & 1 != 0
+    }
+
+    /// The ray of lane `r`.
+    #[inline(always)]
+    pub fn ray(&self, r: usize) -> Ray {
+        Ray {
+            o: V3::new(self.o[0][r], self.o[1][r], self.o[2][r]),
+            d: V3::new(self.d[0][r], self.d[1][r], self.d[2][r]),
+            inv_d: V3::new(self.inv[0][r], self.inv[1][r], self.inv[2][r]),
+            skip: self.skip[r],
+        }
+    }
+
+    fn new(rays: &[Ray], tmax: &[f32]) -> (RayPack, u32) {
+        let mut p = RayPack::empty();
         let mut act = 0u32;
         for (r, (ray, &tm)) in rays.iter().zip(tmax).take(PACKET).enumerate() {
-            for a in 0..3 {
-                p.o[a][r] = ray.o[a];
-                p.d[a][r] = ray.d[a];
-                p.inv[a][r] = ray.inv_d[a];
-                p.neg[a][r] = ray.inv_d[a] < 0.0;
-            }
-            p.skip[r] = ray.skip;
-            p.tmax[r] = tm;
+            p.set(r, ray, tm);
             act |= 1 << r;
         }
         (p, act)
@@ -847,14 +888,28 @@ impl Bvh {
                 self.traverse_packet::<false>(isa, 0, act, &mut p, tmin);
             }
             for (r, o) in out.iter_mut().enumerate().take(rays.len().min(tmax.len())) {
-                *o = (p.found >> r & 1 != 0).then(|| Hit {
-                    t: p.tmax[r],
-                    b1: p.b1[r],
-                    b2: p.b2[r],
-                    prim: p.prim[r],
-                    p: p.hp[r],
-                });
+                *o = p.hit(r);
             }
+        }
+    }
+
+    /// [`Bvh::intersect_packet`] for the lanes of `p` in `act` (bit `r` = lane `r`): their
+    /// closest hits are then [`RayPack::hit`]. Other lanes are left out and report no hit.
+    #[inline]
+    pub fn intersect_pack(&self, p: &mut RayPack, act: u32, tmin: f32) {
+        p.found = 0;
+        if !self.nodes.is_empty() {
+            self.traverse_packet::<false>(Isa::detect(), 0, act & PACK_LANES, p, tmin);
+        }
+    }
+
+    /// [`Bvh::occluded_packet`] for the lanes of `p` in `act`: afterwards
+    /// [`RayPack::found`] says whether each is occluded.
+    #[inline]
+    pub fn occluded_pack(&self, p: &mut RayPack, act: u32, tmin: f32) {
+        p.found = 0;
+        if !self.nodes.is_empty() {
+            self.traverse_packet::<true>(Isa::detect(), 0, act & PACK_LANES, p, tmin);
         }
     }
 
