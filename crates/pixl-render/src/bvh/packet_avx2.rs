@@ -78,13 +78,44 @@ fn hmax_u32(v: __m256i) -> u32 {
 }
 
 impl Bvh {
-    /// [`Bvh::traverse_packet_body`] with AVX2 intrinsics (see the module header).
+    /// [`Bvh::traverse_packet_body`] with AVX2 intrinsics (see the module header). When every
+    /// active lane's direction has the same sign on each axis (the camera rays of a pixel, its
+    /// shadow rays towards one light), each axis's near and far planes are picked once per
+    /// node instead of blended per lane (same values, fewer instructions).
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     pub(super) fn traverse_packet_avx2<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
+        let mut uniform = true;
+        let mut sign = [false; 3];
+        for (a, s) in sign.iter_mut().enumerate() {
+            let neg = (0..PACKET).fold(0u32, |m, r| m | ((p.inv[a][r] < 0.0) as u32) << r) & act;
+            uniform &= neg == 0 || neg == act;
+            *s = neg != 0;
+        }
+        if uniform {
+            self.traverse_packet_avx2_body::<ANY, true>(start, act, p, tmin, sign)
+        } else {
+            self.traverse_packet_avx2_body::<ANY, false>(start, act, p, tmin, sign)
+        }
+    }
+
+    /// The traversal; with `UNI`, every active lane's direction has the negative components
+    /// given by `sign` (the box's `hi` is the near plane on those axes).
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn traverse_packet_avx2_body<const ANY: bool, const UNI: bool>(
+        &self,
+        start: u32,
+        act: u32,
+        p: &mut RayPack,
+        tmin: f32,
+        sign: [bool; 3],
+    ) {
         // Per half and axis: lanes whose direction is negative (near plane = the box's `hi`).
         let zero = _mm256_setzero_ps();
         let neg: [[__m256; 3]; HALVES] =
             std::array::from_fn(|h| std::array::from_fn(|a| _mm256_cmp_ps::<_CMP_LT_OQ>(ld(&p.inv[a], h), zero)));
+        // Rows of `Node::b` holding each axis's near and far planes (used with `UNI`).
+        let near: [usize; 3] = std::array::from_fn(|a| a + 3 * sign[a] as usize);
+        let far: [usize; 3] = std::array::from_fn(|a| a + 3 - 3 * sign[a] as usize);
         let slack = _mm256_set1_ps(1.000_000_2);
         let inf = _mm256_set1_ps(f32::INFINITY);
         let mut stack = PacketStack::new();
@@ -102,7 +133,12 @@ impl Bvh {
                 let mut ct = [u32::MAX; NW];
                 for c in 0..NW {
                     let b = |row: usize| _mm256_set1_ps(n.b[row][c]);
-                    let (lx, ly, lz, hx, hy, hz) = (b(0), b(1), b(2), b(3), b(4), b(5));
+                    // Without `UNI`: low and high planes, blended per lane; with it: near and far.
+                    let (lx, ly, lz, hx, hy, hz) = if UNI {
+                        (b(near[0]), b(near[1]), b(near[2]), b(far[0]), b(far[1]), b(far[2]))
+                    } else {
+                        (b(0), b(1), b(2), b(3), b(4), b(5))
+                    };
                     let mut m = 0u32;
                     let mut entry = inf;
                     for h in 0..HALVES {
@@ -113,7 +149,11 @@ impl Bvh {
                             let (o, inv) = (ld(&p.o[a], h), ld(&p.inv[a], h));
                             let a0 = _mm256_mul_ps(_mm256_sub_ps(lo, o), inv);
                             let a1 = _mm256_mul_ps(_mm256_sub_ps(hi, o), inv);
-                            (_mm256_blendv_ps(a0, a1, neg[h][a]), _mm256_blendv_ps(a1, a0, neg[h][a]))
+                            if UNI {
+                                (a0, a1)
+                            } else {
+                                (_mm256_blendv_ps(a0, a1, neg[h][a]), _mm256_blendv_ps(a1, a0, neg[h][a]))
+                            }
                         };
                         let (t0x, t1x) = slab(lx, hx, 0);
                         let (t0y, t1y) = slab(ly, hy, 1);
