@@ -293,25 +293,19 @@ impl Geometry {
     /// [`Geometry::intersect`] for each of `rays` (far limits `tmax`), into `out`, sharing BVH
     /// traversals between the rays (see [`Bvh::intersect_packet`]): for coherent rays such as
     /// the samples of one pixel. Pairs beyond the shortest slice are not traced.
-    #[inline(always)]
     pub fn intersect_packet(&self, rays: &[Ray], tmin: f32, tmax: &[f32], out: &mut [Option<SurfaceHit>]) {
-        let mut hits = [None; crate::bvh::PACKET];
         for ((rays, tmax), out) in rays
             .chunks(crate::bvh::PACKET)
             .zip(tmax.chunks(crate::bvh::PACKET))
             .zip(out.chunks_mut(crate::bvh::PACKET))
         {
-            self.bvh.intersect_packet(rays, tmin, tmax, &mut hits);
-            // Start loading every hit's attributes before using the first (they are scattered
-            // over a large array: each is a likely cache miss). The whole fixed-size array, so
-            // the loop unrolls; entries past this chunk's rays, stale from an earlier chunk,
-            // only cost a useless hint.
-            for h in hits.iter().flatten() {
-                self.prefetch_attrs(h.prim);
+            let mut p = RayPack::empty();
+            let mut act = 0u32;
+            for (r, ((ray, &tm), _)) in rays.iter().zip(tmax).zip(out.iter()).enumerate() {
+                p.set(r, ray, tm);
+                act |= 1 << r;
             }
-            for (o, h) in out.iter_mut().zip(&hits).take(rays.len().min(tmax.len())) {
-                *o = h.map(|h| self.surface(h));
-            }
+            self.intersect_pack(&mut p, act, tmin, |r, h| out[r] = h);
         }
     }
 
@@ -320,7 +314,8 @@ impl Geometry {
     #[inline(always)]
     pub fn intersect_pack(&self, p: &mut RayPack, act: u32, tmin: f32, mut out: impl FnMut(usize, Option<SurfaceHit>)) {
         self.bvh.intersect_pack(p, act, tmin);
-        // As in `intersect_packet`: start loading every hit's attributes before the first.
+        // Start loading every hit's attributes before using the first (they are scattered over
+        // a large array: each is a likely cache miss).
         for r in 0..crate::bvh::PACKET {
             if act >> r & 1 != 0 {
                 if let Some(h) = p.hit(r) {
@@ -378,5 +373,93 @@ impl Geometry {
     pub fn bounding_sphere(&self) -> (V3, f32) {
         let c = (self.lo + self.hi) * 0.5;
         (c, ((self.hi - self.lo) * 0.5).length().max(1e-3))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pixl_core::Rng;
+
+    /// Packet queries (`intersect_packet`, through a `RayPack`) give each ray exactly the
+    /// single-ray query's surface, for full and partial packets of coherent and random rays,
+    /// rays leaving a triangle, and finite far limits.
+    #[test]
+    fn packet_surfaces_equal_single_ray_surfaces() {
+        let scene = Scene::from_toml_str(
+            r#"
+            [camera]
+            width = 8
+            height = 8
+            fov_y_deg = 40.0
+            [[objects]]
+            name = "ball"
+            shape = { type = "sphere", radius = 0.7 }
+            [[objects]]
+            name = "floor"
+            shape = { type = "quad", size = [6.0, 6.0] }
+            transform = { rotate_deg = [-90.0, 0.0, 0.0], translate = [0.0, -0.7, 0.0] }
+            "#,
+        )
+        .expect("scene");
+        let g = Geometry::build(&scene).expect("geometry");
+        let mut rng = Rng::new(5);
+        let mut hits = 0;
+        for k in 0..60 {
+            let len: usize = [16, 1, 7, 16 + 5, 40][k % 5];
+            let o0 = V3::new(rng.uniform(-2.0, 2.0), rng.uniform(0.5, 2.0), rng.uniform(1.5, 3.0));
+            let mut rays = Vec::new();
+            let mut tmax = Vec::new();
+            for j in 0..len {
+                let target = V3::new(rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 0.5), rng.uniform(-1.0, 1.0));
+                let ray = if k % 2 == 0 {
+                    Ray::new(o0, (target - o0).normalize())
+                } else if j % 3 == 0 && !g.tris.is_empty() {
+                    // Leaving a random triangle.
+                    let prim = rng.below(g.tris.len()) as u32;
+                    let t = &g.tris[prim as usize];
+                    let p = t.p0 + t.e1 * 0.25 + t.e2 * 0.25;
+                    Ray::leaving(prim, p, (target - p).normalize())
+                } else {
+                    let o = V3::new(rng.uniform(-3.0, 3.0), rng.uniform(-0.5, 3.0), rng.uniform(-3.0, 3.0));
+                    Ray::new(o, (target - o).normalize())
+                };
+                rays.push(ray);
+                tmax.push(if j % 4 == 1 {
+                    rng.uniform(0.5, 3.0)
+                } else {
+                    f32::INFINITY
+                });
+            }
+            // `out` one shorter than `rays` (only that many are traced), pre-filled so a miss
+            // must overwrite its entry.
+            let mut out = vec![None; len.saturating_sub(1)];
+            let marker = SurfaceHit {
+                p: V3::ZERO,
+                ng: V3::ZERO,
+                ns: V3::ZERO,
+                uv: [9.0, 9.0],
+                prim: u32::MAX,
+                t: -1.0,
+            };
+            out.iter_mut().for_each(|o| *o = Some(marker));
+            g.intersect_packet(&rays, 0.0, &tmax, &mut out);
+            for (j, got) in out.iter().enumerate() {
+                let want = g.intersect(&rays[j], 0.0, tmax[j]);
+                match (want, got) {
+                    (None, None) => {}
+                    (Some(w), Some(h)) => {
+                        hits += 1;
+                        assert_eq!(
+                            (w.prim, w.t.to_bits(), w.p, w.ns, w.uv),
+                            (h.prim, h.t.to_bits(), h.p, h.ns, h.uv),
+                            "packet {k} ray {j}"
+                        );
+                    }
+                    (w, h) => panic!("packet {k} ray {j}: single {w:?} vs packet {h:?}"),
+                }
+            }
+        }
+        assert!(hits > 200, "only {hits} hits: the test rays miss the scene");
     }
 }
