@@ -148,7 +148,7 @@ impl Film {
     /// that was ~43 MB written and read back 13 times).
     pub fn from_rows(width: usize, height: usize, spp: u32, row: &(dyn Fn(usize, &mut [PixelSum]) + Sync)) -> Film {
         let n = spp.max(1) as f32;
-        let mut rgb: Vec<Image> = (0..RGB_PASSES).map(|_| Image::new(width, height, 3)).collect();
+        let mut rgb: [Image; RGB_PASSES] = std::array::from_fn(|_| Image::new(width, height, 3));
         let mut comb = Image::new(width, height, 4);
         let mut depth = Image::new(width, height, 1);
         {
@@ -173,21 +173,26 @@ impl Film {
                 },
             );
         }
-        let mut rgb = rgb.into_iter();
-        let mut next = || rgb.next().unwrap_or_else(|| Image::new(width, height, 3));
+        let [diff_col, diff_dir, diff_ind, gloss_col, gloss_dir, gloss_ind, trans_col, trans_dir, trans_ind, emit, env, normal] =
+            rgb;
+        let lobes = [
+            [diff_col, diff_dir, diff_ind],
+            [gloss_col, gloss_dir, gloss_ind],
+            [trans_col, trans_dir, trans_ind],
+        ];
         let mut out = Vec::new();
-        for (col, dir, ind) in LOBE_PASSES {
-            out.push((col, next()));
-            out.push((dir, next()));
-            out.push((ind, next()));
+        for ((col, dir, ind), [c, d, i]) in LOBE_PASSES.into_iter().zip(lobes) {
+            out.push((col, c));
+            out.push((dir, d));
+            out.push((ind, i));
         }
         out.push((passes::VOLUME_DIR, Image::new(width, height, 3)));
         out.push((passes::VOLUME_IND, Image::new(width, height, 3)));
-        out.push((passes::EMIT, next()));
-        out.push((passes::ENV, next()));
+        out.push((passes::EMIT, emit));
+        out.push((passes::ENV, env));
         out.push((passes::COMBINED, comb));
         out.push((passes::DEPTH, depth));
-        out.push((passes::NORMAL, next()));
+        out.push((passes::NORMAL, normal));
         Film {
             width,
             height,
