@@ -1583,6 +1583,82 @@ mod tests {
         assert!(hits > 300, "only {hits} hits");
     }
 
+    /// Packets whose lanes share their direction signs (so the AVX2 kernel also bounds the
+    /// packet as a whole and skips children no lane can enter): shadow-like rays from a patch
+    /// of a surface to a quad light (finite limits or none), camera-like rays from one point,
+    /// and widely spread rays from a spread of origins — each lane against brute force.
+    #[test]
+    fn sign_uniform_packets_match_brute_force() {
+        for (tris, seed) in [(grid(60), 21), (soup(2000, 7), 22)] {
+            let (bvh, perm) = Bvh::build(&tris);
+            let inv = inverse(&perm);
+            let mut rng = Rng::new(seed);
+            let mut hits = 0;
+            for k in 0..240 {
+                let len = [PACKET, 11, 3, PACKET][k % 4];
+                let kind = k % 3;
+                let base = rng.below(tris.len() - 40);
+                let eye = V3::new(rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(2.0, 4.0));
+                let aim = V3::new(rng.uniform(-1.5, 1.5), rng.uniform(-1.5, 1.5), 0.0) - eye;
+                let corner = V3::new(2.5, 2.5, rng.uniform(0.5, 2.0));
+                let finite = k % 2 == 0;
+                let mut rays = Vec::new();
+                let mut tmax = Vec::new();
+                for _ in 0..len {
+                    let (ray, tm) = match kind {
+                        0 => {
+                            // From a triangle near `base` to a point of a 1 m quad light.
+                            let on = base + rng.below(40);
+                            let t = &tris[on];
+                            let (a, b) = (rng.f32() * 0.5, rng.f32() * 0.5);
+                            let o = t.p0 + t.e1 * a + t.e2 * b;
+                            let q = corner + V3::new(rng.f32(), rng.f32(), 0.0);
+                            let dist = (q - o).length();
+                            let tm = if finite { dist * (1.0 - 1e-3) } else { f32::INFINITY };
+                            (Ray::leaving(inv[on], o, (q - o).normalize()), tm)
+                        }
+                        1 => {
+                            let jit = V3::new(rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0));
+                            (Ray::new(eye, (aim + jit * 0.01).normalize()), f32::INFINITY)
+                        }
+                        _ => {
+                            let o = eye + V3::new(rng.f32(), rng.f32(), rng.f32());
+                            let d = V3::new(-0.1 - rng.f32(), -0.1 - rng.f32(), -0.1 - rng.f32());
+                            let tm = if finite { rng.uniform(0.5, 5.0) } else { f32::INFINITY };
+                            (Ray::new(o, d.normalize()), tm)
+                        }
+                    };
+                    rays.push(ray);
+                    tmax.push(tm);
+                }
+                for isa in Isa::available() {
+                    let mut got = vec![None; len];
+                    bvh.intersect_packet_isa(isa, &rays, 0.0, &tmax, &mut got);
+                    let mut occ = vec![false; len];
+                    bvh.occluded_packet_isa(isa, &rays, 0.0, &tmax, &mut occ);
+                    for j in 0..len {
+                        let skip = if rays[j].skip == NO_PRIM {
+                            usize::MAX
+                        } else {
+                            perm[rays[j].skip as usize] as usize
+                        };
+                        let want = brute_excluding(&tris, &rays[j], 0.0, tmax[j], skip);
+                        match (want, &got[j]) {
+                            (None, None) => {}
+                            (Some(w), Some(h)) => {
+                                hits += 1;
+                                same_hit(&tris, &perm, &rays[j], 0.0, tmax[j], w, h)
+                            }
+                            (w, g) => panic!("{isa:?} packet {k} lane {j}: brute {w:?} vs bvh {g:?}"),
+                        }
+                        assert_eq!(want.is_some(), occ[j], "{isa:?} packet {k} lane {j}");
+                    }
+                }
+            }
+            assert!(hits > 400, "only {hits} hits");
+        }
+    }
+
     #[test]
     fn matches_brute_force_on_tiny_and_degenerate_inputs() {
         for n in [1, 3, 4, 5, 9] {

@@ -11,11 +11,18 @@
 //! distances and barycentrics are bit-identical to [`super::intersect_tri`]'s. A half of 8
 //! lanes without active rays is skipped, so packets of up to 8 rays cost about half.
 //!
+//! Packets whose lanes share their direction signs (a pixel's camera rays, its shadow rays to
+//! one light) are also bounded as a whole ([`Frustum`]: ranges of origins and reciprocal
+//! directions, largest limit): a node's four children are first tested against those bounds in
+//! one SSE step, and only the children the bounds cannot exclude get the per-lane tests. The
+//! bounds are conservative under rounding (every operation is monotonic), so the per-lane
+//! masks, and with them the results, are exactly those without the step.
+//!
 //! Why: the portable body's lane loops compile to per-lane selects and bit gathers (~120 ns per
 //! node on the benchmark); this form tests a node's four children against 16 rays in ~40 ns,
 //! which makes packets of a pixel's divergent bounce and shadow rays cheaper than tracing them
 //! one by one (BENCHMARKS.md, session 15).
-use super::{Bvh, Isa, PacketStack, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, NW, PACKET};
+use super::{Bvh, Isa, Node, PacketStack, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, NW, PACKET};
 use std::arch::x86_64::*;
 
 /// Lanes per vector; a packet is `HALVES` vectors.
@@ -87,7 +94,10 @@ impl Bvh {
         let mut uniform = true;
         let mut sign = [false; 3];
         for (a, s) in sign.iter_mut().enumerate() {
-            let neg = (0..PACKET).fold(0u32, |m, r| m | ((p.inv[a][r] < 0.0) as u32) << r) & act;
+            let zero = _mm256_setzero_ps();
+            let neg = (0..HALVES).fold(0u32, |m, h| {
+                m | (_mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(ld(&p.inv[a], h), zero)) as u32) << (W * h)
+            }) & act;
             uniform &= neg == 0 || neg == act;
             *s = neg != 0;
         }
@@ -118,6 +128,10 @@ impl Bvh {
         let far: [usize; 3] = std::array::from_fn(|a| a + 3 - 3 * sign[a] as usize);
         let slack = _mm256_set1_ps(1.000_000_2);
         let inf = _mm256_set1_ps(f32::INFINITY);
+        // With uniform signs, the packet's bounds: children no lane can enter are skipped
+        // before the per-lane tests.
+        let act0 = act;
+        let mut frustum = if UNI { Frustum::new(p, act, sign) } else { None };
         let mut stack = PacketStack::new();
         let (mut cur, mut act) = (start, act);
         loop {
@@ -131,7 +145,14 @@ impl Bvh {
                 let actv = [lane_mask(act, 0), lane_mask(act, 1)];
                 let mut cm = [0u32; NW];
                 let mut ct = [u32::MAX; NW];
+                let enter = match &frustum {
+                    Some(f) => f.may_enter(n, near, far),
+                    None => (1 << NW) - 1,
+                };
                 for c in 0..NW {
+                    if enter >> c & 1 == 0 {
+                        continue;
+                    }
                     let b = |row: usize| _mm256_set1_ps(n.b[row][c]);
                     // Without `UNI`: low and high planes, blended per lane; with it: near and far.
                     let (lx, ly, lz, hx, hy, hz) = if UNI {
@@ -181,6 +202,7 @@ impl Bvh {
                     continue;
                 }
             } else if act != 0 && cur != EMPTY {
+                let mut hit = 0u32;
                 for pk in self.leaf_packets(cur) {
                     for l in 0..4 {
                         if pk.prim[l] == u32::MAX {
@@ -188,6 +210,12 @@ impl Bvh {
                         }
                         let m = tri_lanes(pk, l, p, tmin, act);
                         p.record(m, pk, l);
+                        hit |= m;
+                    }
+                }
+                if !ANY && hit != 0 {
+                    if let Some(f) = &mut frustum {
+                        f.tmax = lanes_max(&p.tmax, act0);
                     }
                 }
             }
@@ -212,6 +240,114 @@ impl Bvh {
             }
         }
     }
+}
+
+/// Interval bounds over a packet's lanes whose directions share their signs on every axis:
+/// per axis the origin coordinate that gives the smallest entry (`o_near`) and the largest
+/// exit (`o_far`) distance, the range of reciprocal directions, and the largest far limit.
+/// Rounding is monotonic, so for every lane its computed slab entry is ≥ the bound computed
+/// from these and its exit ≤ the bound: a box whose bounds do not overlap is entered by no lane.
+struct Frustum {
+    o_near: [f32; 3],
+    o_far: [f32; 3],
+    inv_lo: [f32; 3],
+    inv_hi: [f32; 3],
+    tmax: f32,
+}
+
+impl Frustum {
+    /// The bounds of the lanes in `act` (directions negative on the axes where `sign` is set);
+    /// `None` if an origin, reciprocal direction or limit is not finite (∞ reciprocals make
+    /// `0 · ∞` NaNs, which the lane test treats as an open slab) or a limit is NaN.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn new(p: &RayPack, act: u32, sign: [bool; 3]) -> Option<Frustum> {
+        let mut f = Frustum {
+            o_near: [0.0; 3],
+            o_far: [0.0; 3],
+            inv_lo: [0.0; 3],
+            inv_hi: [0.0; 3],
+            tmax: lanes_max(&p.tmax, act),
+        };
+        let inf = _mm256_set1_ps(f32::INFINITY);
+        let abs = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+        for a in 0..3 {
+            for h in 0..HALVES {
+                // Active lanes whose origin or reciprocal is ±∞ or NaN (`<` is false for NaN).
+                let fin = |v: __m256| _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_and_ps(v, abs), inf);
+                let ok = _mm256_and_ps(fin(ld(&p.o[a], h)), fin(ld(&p.inv[a], h)));
+                if _mm256_movemask_ps(_mm256_andnot_ps(ok, lane_mask(act, h))) != 0 {
+                    return None;
+                }
+            }
+            let (o_lo, o_hi) = (lanes_min(&p.o[a], act), lanes_max(&p.o[a], act));
+            (f.inv_lo[a], f.inv_hi[a]) = (lanes_min(&p.inv[a], act), lanes_max(&p.inv[a], act));
+            // Positive direction: entry (near − o)·inv is smallest for the largest origin,
+            // exit (far − o)·inv largest for the smallest; negative directions the reverse.
+            (f.o_near[a], f.o_far[a]) = if sign[a] { (o_lo, o_hi) } else { (o_hi, o_lo) };
+        }
+        for h in 0..HALVES {
+            let t = ld(&p.tmax, h);
+            let nan = _mm256_cmp_ps::<_CMP_UNORD_Q>(t, t);
+            if _mm256_movemask_ps(_mm256_and_ps(nan, lane_mask(act, h))) != 0 {
+                return None;
+            }
+        }
+        Some(f)
+    }
+
+    /// Mask of the children of `n` (rows `near`, `far` of each axis's near and far planes)
+    /// that some lane may enter.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    fn may_enter(&self, n: &Node, near: [usize; 3], far: [usize; 3]) -> u32 {
+        const { assert!(NW == 4, "one SSE vector per node row") };
+        let row = |r: usize| {
+            let s: &[f32; 4] = &n.b[r];
+            // SAFETY: `s` is exactly 4 initialised f32; `loadu` has no alignment requirement.
+            unsafe { _mm_loadu_ps(s.as_ptr()) }
+        };
+        let mut entry = _mm_setzero_ps();
+        let mut exit = _mm_set1_ps(self.tmax);
+        for a in 0..3 {
+            let (lo, hi) = (_mm_set1_ps(self.inv_lo[a]), _mm_set1_ps(self.inv_hi[a]));
+            // A product with a ranged factor is extreme at an end of the range.
+            let x = _mm_sub_ps(row(near[a]), _mm_set1_ps(self.o_near[a]));
+            entry = _mm_max_ps(entry, _mm_min_ps(_mm_mul_ps(x, lo), _mm_mul_ps(x, hi)));
+            let x = _mm_sub_ps(row(far[a]), _mm_set1_ps(self.o_far[a]));
+            exit = _mm_min_ps(exit, _mm_max_ps(_mm_mul_ps(x, lo), _mm_mul_ps(x, hi)));
+        }
+        let ok = _mm_cmp_ps::<_CMP_LE_OQ>(entry, _mm_mul_ps(exit, _mm_set1_ps(1.000_000_2)));
+        _mm_movemask_ps(ok) as u32
+    }
+}
+
+/// The smallest of the values of the lanes in `act` (+∞ if none).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lanes_min(v: &[f32; PACKET], act: u32) -> f32 {
+    const { assert!(HALVES == 2, "two vectors per row") };
+    let inf = _mm256_set1_ps(f32::INFINITY);
+    let m = _mm256_min_ps(
+        _mm256_blendv_ps(inf, ld(v, 0), lane_mask(act, 0)),
+        _mm256_blendv_ps(inf, ld(v, 1), lane_mask(act, 1)),
+    );
+    hmin(m)
+}
+
+/// The largest of the values of the lanes in `act` (−∞ if none).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn lanes_max(v: &[f32; PACKET], act: u32) -> f32 {
+    let ninf = _mm256_set1_ps(f32::NEG_INFINITY);
+    let m = _mm256_max_ps(
+        _mm256_blendv_ps(ninf, ld(v, 0), lane_mask(act, 0)),
+        _mm256_blendv_ps(ninf, ld(v, 1), lane_mask(act, 1)),
+    );
+    let x = _mm256_max_ps(m, _mm256_permute2f128_ps::<1>(m, m));
+    let x = _mm256_max_ps(x, _mm256_shuffle_ps::<0b01_00_11_10>(x, x));
+    let x = _mm256_max_ps(x, _mm256_shuffle_ps::<0b10_11_00_01>(x, x));
+    _mm256_cvtss_f32(x)
 }
 
 /// Lane `l` of packet `pk` against every ray of `p` active in `act` (the operations of
