@@ -765,8 +765,6 @@ pub struct RayPack {
     o: [[f32; PACKET]; 3],
     d: [[f32; PACKET]; 3],
     inv: [[f32; PACKET]; 3],
-    /// Per axis, whether the direction is negative (the near plane is the box's `hi`).
-    neg: [[bool; PACKET]; 3],
     /// Per lane, the primitive the ray leaves ([`Ray::skip`]).
     skip: [u32; PACKET],
     /// Current far limit per lane (the closest hit so far).
@@ -801,7 +799,6 @@ impl RayPack {
             o: [[0.0; PACKET]; 3],
             d: [[0.0; PACKET]; 3],
             inv: [[0.0; PACKET]; 3],
-            neg: [[false; PACKET]; 3],
             skip: [NO_PRIM; PACKET],
             tmax: [f32::NEG_INFINITY; PACKET],
             b1: [0.0; PACKET],
@@ -819,7 +816,6 @@ impl RayPack {
             self.o[a][r] = ray.o[a];
             self.d[a][r] = ray.d[a];
             self.inv[a][r] = ray.inv_d[a];
-            self.neg[a][r] = ray.inv_d[a] < 0.0;
         }
         self.skip[r] = ray.skip;
         self.tmax[r] = tmax;
@@ -1006,9 +1002,9 @@ impl Bvh {
                         let a1y = (hy - p.o[1][r]) * p.inv[1][r];
                         let a0z = (lz - p.o[2][r]) * p.inv[2][r];
                         let a1z = (hz - p.o[2][r]) * p.inv[2][r];
-                        let (t0x, t1x) = if p.neg[0][r] { (a1x, a0x) } else { (a0x, a1x) };
-                        let (t0y, t1y) = if p.neg[1][r] { (a1y, a0y) } else { (a0y, a1y) };
-                        let (t0z, t1z) = if p.neg[2][r] { (a1z, a0z) } else { (a0z, a1z) };
+                        let (t0x, t1x) = if p.inv[0][r] < 0.0 { (a1x, a0x) } else { (a0x, a1x) };
+                        let (t0y, t1y) = if p.inv[1][r] < 0.0 { (a1y, a0y) } else { (a0y, a1y) };
+                        let (t0z, t1z) = if p.inv[2][r] < 0.0 { (a1z, a0z) } else { (a0z, a1z) };
                         let mut t0 = 0.0f32;
                         t0 = if t0x > t0 { t0x } else { t0 };
                         t0 = if t0y > t0 { t0y } else { t0 };
