@@ -257,8 +257,8 @@ struct Frustum {
 
 impl Frustum {
     /// The bounds of the lanes in `act` (directions negative on the axes where `sign` is set);
-    /// `None` if an origin, reciprocal direction or limit is not finite (∞ reciprocals make
-    /// `0 · ∞` NaNs, which the lane test treats as an open slab) or a limit is NaN.
+    /// `None` if an origin is not finite, a reciprocal direction is 0 or not finite (those make
+    /// `0 · ∞` NaNs, which the lane test treats as an open slab), or a limit is NaN.
     #[inline]
     #[target_feature(enable = "avx2")]
     fn new(p: &RayPack, act: u32, sign: [bool; 3]) -> Option<Frustum> {
@@ -273,9 +273,12 @@ impl Frustum {
         let abs = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
         for a in 0..3 {
             for h in 0..HALVES {
-                // Active lanes whose origin or reciprocal is ±∞ or NaN (`<` is false for NaN).
+                // Active lanes whose origin is ±∞ or NaN or whose reciprocal is that or 0
+                // (comparisons with NaN are false).
                 let fin = |v: __m256| _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_and_ps(v, abs), inf);
-                let ok = _mm256_and_ps(fin(ld(&p.o[a], h)), fin(ld(&p.inv[a], h)));
+                let inv = ld(&p.inv[a], h);
+                let nonzero = _mm256_cmp_ps::<_CMP_GT_OQ>(_mm256_and_ps(inv, abs), _mm256_setzero_ps());
+                let ok = _mm256_and_ps(_mm256_and_ps(fin(ld(&p.o[a], h)), fin(inv)), nonzero);
                 if _mm256_movemask_ps(_mm256_andnot_ps(ok, lane_mask(act, h))) != 0 {
                     return None;
                 }
