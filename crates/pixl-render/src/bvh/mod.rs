@@ -949,16 +949,18 @@ impl Bvh {
     }
 
     /// Finishes the subtree under child code `cur` for each lane in `lanes` alone, by
-    /// single-ray traversal (for `isa`), and records the hits in the packet: once a packet has
-    /// only a few live lanes, a single ray visits a node for less than a packet does. Same
-    /// hits as the packet traversal (same triangle test), within each lane's current limit.
+    /// single-ray traversal, and records the hits in the packet: once a packet has only a few
+    /// live lanes, a single ray visits a node for less than a packet does. Same hits as the
+    /// packet traversal (same triangle test), within each lane's current limit. The single-ray
+    /// body is inlined here, so it is compiled for the calling kernel's instruction set and a
+    /// hand-off costs no call or dispatch (render instructions −2.7 %, BENCHMARKS.md session 18).
     #[inline(always)]
-    fn finish_lanes<const ANY: bool>(&self, isa: Isa, cur: u32, mut lanes: u32, p: &mut RayPack, tmin: f32) {
+    fn finish_lanes<const ANY: bool>(&self, cur: u32, mut lanes: u32, p: &mut RayPack, tmin: f32) {
         while lanes != 0 {
             let r = lanes.trailing_zeros() as usize;
             lanes &= lanes - 1;
             let mut best = None;
-            self.traverse::<ANY>(isa, cur, &p.ray(r), tmin, p.tmax[r], &mut best);
+            self.traverse_body::<ANY>(cur, &p.ray(r), tmin, p.tmax[r], &mut best);
             if let Some(h) = best {
                 p.tmax[r] = h.t;
                 p.b1[r] = h.b1;
@@ -983,7 +985,7 @@ impl Bvh {
                 act &= !p.found;
             }
             if act != 0 && act.count_ones() <= FINISH_ALONE && cur != EMPTY {
-                self.finish_lanes::<ANY>(Isa::Base, cur, act, p, tmin);
+                self.finish_lanes::<ANY>(cur, act, p, tmin);
             } else if act != 0 && cur & LEAF == 0 {
                 let n = &self.nodes[cur as usize];
                 // Per child: lanes entering it and the smallest entry distance (as bits:

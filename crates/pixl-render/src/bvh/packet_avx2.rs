@@ -22,7 +22,7 @@
 //! node on the benchmark); this form tests a node's four children against 16 rays in ~40 ns,
 //! which makes packets of a pixel's divergent bounce and shadow rays cheaper than tracing them
 //! one by one (BENCHMARKS.md, session 15).
-use super::{Bvh, Isa, Node, PacketStack, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, NW, PACKET};
+use super::{Bvh, Node, PacketStack, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, NW, PACKET};
 use std::arch::x86_64::*;
 
 /// Lanes per vector; a packet is `HALVES` vectors.
@@ -139,7 +139,7 @@ impl Bvh {
                 act &= !p.found;
             }
             if act != 0 && act.count_ones() <= FINISH_ALONE && cur != EMPTY {
-                self.finish_lanes::<ANY>(Isa::Avx2, cur, act, p, tmin);
+                self.finish_lanes::<ANY>(cur, act, p, tmin);
             } else if act != 0 && cur & LEAF == 0 {
                 let n = &self.nodes[cur as usize];
                 let actv = [lane_mask(act, 0), lane_mask(act, 1)];
