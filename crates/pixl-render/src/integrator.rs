@@ -403,7 +403,9 @@ const MIN_SHADOW_PACKET: usize = 4;
 const MIN_BOUNCE_PACKET: usize = 8;
 
 /// The rays of some lanes of a packet of paths, compacted into the first slots of a
-/// [`RayPack`], for one BVH query.
+/// [`RayPack`], for one BVH query. Its queries (and the light hit tests after them) are
+/// `#[inline(always)]` so that they are compiled into the AVX2 pixel loop rather than as
+/// separate baseline functions (render instructions −1.5 %, BENCHMARKS.md session 18).
 struct Batch {
     pack: RayPack,
     /// Lane of each ray, and slot of each lane's ray.
@@ -442,6 +444,7 @@ impl Batch {
     }
 
     /// Per lane, whether its ray is occluded (`false` for lanes without a ray).
+    #[inline(always)]
     fn occluded(&mut self, geom: &Geometry) -> [bool; PACKET] {
         let mut out = [false; PACKET];
         let k = self.len;
@@ -461,6 +464,7 @@ impl Batch {
 
     /// The closest hit of each ray, written to `out` at its lane (lanes without a ray are
     /// left as they are); batches of fewer than `min_packet` rays are traced one by one.
+    #[inline(always)]
     fn intersect(&mut self, geom: &Geometry, min_packet: usize, out: &mut [Option<SurfaceHit>; PACKET]) {
         let k = self.len;
         if k >= min_packet {

@@ -534,6 +534,7 @@ impl Lights {
 
     /// Suns with a cone (see the module docs) a ray escaping the scene along `d` sees: calls `f(radiance,
     /// light_pdf)` for each.
+    #[inline(always)]
     pub fn sun_hits(&self, d: V3, mut f: impl FnMut(V3, f32)) {
         for &i in &self.sun_indices {
             if let LightKind::Sun {
@@ -562,16 +563,19 @@ impl Lights {
 
     /// Area and sphere lights hit by `ray` before `tmax`: calls `f(radiance, light_pdf, t)`
     /// for each (lights do not occlude, so every one on the way counts).
+    #[inline(always)]
     pub fn area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
         self.area_hits_if(ray, tmax, false, f)
     }
 
     /// [`Lights::area_hits`] for a camera ray: only the area lights visible to the camera (no
     /// sphere lights).
+    #[inline(always)]
     pub fn camera_area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
         self.area_hits_if(ray, tmax, true, f)
     }
 
+    #[inline(always)]
     fn area_hits_if(&self, ray: &Ray, tmax: f32, camera_ray: bool, mut f: impl FnMut(V3, f32, f32)) {
         for &i in &self.area_indices {
             if let LightKind::Area {
