@@ -27,7 +27,7 @@
 //!   share one traversal: a node is visited while any live lane enters it. On AVX2 CPUs the
 //!   kernel is written with intrinsics (`packet_avx2.rs`: a child box or a triangle against 16
 //!   lanes in two 8-wide vectors); elsewhere portable lane loops. Once a node is reached by at
-//!   most `FINISH_ALONE` (2) live lanes, each finishes that subtree by single-ray traversal
+//!   most `FINISH_ALONE` (3) live lanes, each finishes that subtree by single-ray traversal
 //!   (cheaper per node than a nearly empty packet). Per lane, results equal the single-ray
 //!   query's (same triangle test), up to ties.
 //! - `PIXL_ISA=base` in the environment forces the portable code (for A/B measurements; it also
@@ -746,8 +746,10 @@ impl Bvh {
 
 /// A packet traversal reaching a node with at most this many live lanes finishes the
 /// subtree for each of them by single-ray traversal ([`Bvh::finish_lanes`]). Measured on the
-/// bench scene's bounce packets: 3.6 → 4.4 Mrays/s (BENCHMARKS.md, session 15).
-const FINISH_ALONE: u32 = 2;
+/// bench scene's bounce packets: 3.6 → 4.4 Mrays/s (BENCHMARKS.md, session 15); 3 since the
+/// hand-off is inlined into the packet kernel (render instructions −1.6 % against 2 at 256²,
+/// 4 −2.2 %, 6 −1.6 %; timing within noise; session 18).
+const FINISH_ALONE: u32 = 3;
 
 /// Rays per packet of [`Bvh::intersect_packet`] / [`Bvh::occluded_packet`].
 pub const PACKET: usize = 16;
