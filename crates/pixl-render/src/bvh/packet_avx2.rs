@@ -74,6 +74,16 @@ fn hmin(v: __m256) -> f32 {
     _mm256_cvtss_f32(x)
 }
 
+/// The largest of 8 floats (none NaN).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn hmax(v: __m256) -> f32 {
+    let x = _mm256_max_ps(v, _mm256_permute2f128_ps::<1>(v, v));
+    let x = _mm256_max_ps(x, _mm256_shuffle_ps::<0b01_00_11_10>(x, x));
+    let x = _mm256_max_ps(x, _mm256_shuffle_ps::<0b10_11_00_01>(x, x));
+    _mm256_cvtss_f32(x)
+}
+
 /// The largest of 8 unsigned integers.
 #[inline]
 #[target_feature(enable = "avx2")]
@@ -342,15 +352,13 @@ fn lanes_min(v: &[f32; PACKET], act: u32) -> f32 {
 #[inline]
 #[target_feature(enable = "avx2")]
 fn lanes_max(v: &[f32; PACKET], act: u32) -> f32 {
+    const { assert!(HALVES == 2, "two vectors per row") };
     let ninf = _mm256_set1_ps(f32::NEG_INFINITY);
     let m = _mm256_max_ps(
         _mm256_blendv_ps(ninf, ld(v, 0), lane_mask(act, 0)),
         _mm256_blendv_ps(ninf, ld(v, 1), lane_mask(act, 1)),
     );
-    let x = _mm256_max_ps(m, _mm256_permute2f128_ps::<1>(m, m));
-    let x = _mm256_max_ps(x, _mm256_shuffle_ps::<0b01_00_11_10>(x, x));
-    let x = _mm256_max_ps(x, _mm256_shuffle_ps::<0b10_11_00_01>(x, x));
-    _mm256_cvtss_f32(x)
+    hmax(m)
 }
 
 /// Lane `l` of packet `pk` against every ray of `p` active in `act` (the operations of
