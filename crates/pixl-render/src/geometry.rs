@@ -12,6 +12,7 @@ use crate::math::V3;
 use crate::mesh::Mesh;
 use crate::scene::{Scene, Shape};
 use crate::texture::Texture;
+use rayon::prelude::*;
 use std::f32::consts::PI;
 
 /// Per-triangle shading data, in BVH order.
@@ -261,8 +262,8 @@ impl Geometry {
             }
         }
         let (bvh, perm) = Bvh::build(&tris);
-        let tris: Vec<Tri> = perm.iter().map(|&i| tris[i as usize]).collect();
-        let attrs: Vec<TriAttr> = perm.iter().map(|&i| attrs[i as usize]).collect();
+        let tris: Vec<Tri> = perm.par_iter().map(|&i| tris[i as usize]).collect();
+        let attrs: Vec<TriAttr> = perm.par_iter().map(|&i| attrs[i as usize]).collect();
         let mut lo = V3::splat(f32::INFINITY);
         let mut hi = V3::splat(f32::NEG_INFINITY);
         for t in &tris {
