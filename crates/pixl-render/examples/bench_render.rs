@@ -6,7 +6,8 @@
 //! (GRID = vertices per side, default 500 → 498 002 triangles; REPEAT renders the image that
 //! many times and also prints the minimum and median wall time — the VM's host adds ±10 % from
 //! run to run; `PIXL_BENCH_WIDTH=N` renders N×N pixels instead; `render-only` skips the ray
-//! timings, e.g. for profiling).
+//! timings, e.g. for profiling; `PIXL_BENCH_SAVE=DIR` also writes the scene to `DIR/scene.toml`
+//! with its mesh, for timing `pixl render` end to end).
 //!
 //! After the render it also times ray casting alone on the main thread (a load-independent
 //! figure: rays per second per thread) for three ray kinds made from the camera view: primary
@@ -45,11 +46,21 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             mesh.indices.push([b, c, d]);
         }
     }
-    let dir = tempfile::tempdir()?;
-    let mesh_path = dir.path().join("depth_mesh.ply");
+    // `PIXL_BENCH_SAVE=DIR` keeps the mesh and writes the scene as `DIR/scene.toml` (to time
+    // `pixl render DIR/scene.toml --spp 16` end to end); otherwise both live in a temp folder.
+    let tmp = tempfile::tempdir()?;
+    let save = std::env::var_os("PIXL_BENCH_SAVE").map(std::path::PathBuf::from);
+    let dir = match &save {
+        Some(d) => {
+            std::fs::create_dir_all(d)?;
+            d.clone()
+        }
+        None => tmp.path().to_owned(),
+    };
+    let mesh_path = dir.join("depth_mesh.ply");
     pixl_render::export::ply::write_ply(&mesh_path, &mesh)?;
     let mut scene = Scene::new(Camera::new(512, 512, 50.0));
-    scene.base_dir = dir.path().to_owned();
+    scene.base_dir = dir.clone();
     scene.objects.push(Object {
         name: "depth".into(),
         shape: Shape::Mesh {
@@ -80,6 +91,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         image: None,
         rotation_deg: 0.0,
     });
+    if let Some(d) = &save {
+        scene.save(&d.join("scene.toml"))?;
+    }
     // `PIXL_BENCH_WIDTH=N` renders N×N instead (same scene and camera), e.g. for a quick
     // instruction count under callgrind.
     let width = std::env::var("PIXL_BENCH_WIDTH").ok().and_then(|v| v.parse().ok());
