@@ -149,33 +149,46 @@ pub struct Bvh {
     packets: Vec<Tri4>,
 }
 
+/// A box as four lanes of `lo` and of `hi` (x, y, z and a spare lane that stays at the empty
+/// box's ±∞), so that growing one is a vector min and max.
 #[derive(Clone, Copy)]
+#[repr(C, align(16))]
 struct Aabb {
-    lo: V3,
-    hi: V3,
+    lo: [f32; 4],
+    hi: [f32; 4],
 }
 
 impl Aabb {
     const EMPTY: Aabb = Aabb {
-        lo: V3::new(f32::INFINITY, f32::INFINITY, f32::INFINITY),
-        hi: V3::new(f32::NEG_INFINITY, f32::NEG_INFINITY, f32::NEG_INFINITY),
+        lo: [f32::INFINITY; 4],
+        hi: [f32::NEG_INFINITY; 4],
     };
+    fn point(p: V3) -> Aabb {
+        Aabb {
+            lo: [p.x, p.y, p.z, f32::INFINITY],
+            hi: [p.x, p.y, p.z, f32::NEG_INFINITY],
+        }
+    }
     // Plain compare-selects (the inputs are finite): cheaper than `f32::min`'s NaN rules.
+    #[inline]
     fn grow(&mut self, o: &Aabb) {
-        self.grow_lo_hi(o.lo, o.hi);
+        for i in 0..4 {
+            self.lo[i] = if o.lo[i] < self.lo[i] { o.lo[i] } else { self.lo[i] };
+            self.hi[i] = if o.hi[i] > self.hi[i] { o.hi[i] } else { self.hi[i] };
+        }
     }
     fn grow_p(&mut self, p: V3) {
-        self.grow_lo_hi(p, p);
+        self.grow(&Aabb::point(p));
     }
-    #[inline]
-    fn grow_lo_hi(&mut self, lo: V3, hi: V3) {
-        let mn = |a: f32, b: f32| if b < a { b } else { a };
-        let mx = |a: f32, b: f32| if b > a { b } else { a };
-        self.lo = V3::new(mn(self.lo.x, lo.x), mn(self.lo.y, lo.y), mn(self.lo.z, lo.z));
-        self.hi = V3::new(mx(self.hi.x, hi.x), mx(self.hi.y, hi.y), mx(self.hi.z, hi.z));
+    fn extent(&self) -> V3 {
+        V3::new(
+            self.hi[0] - self.lo[0],
+            self.hi[1] - self.lo[1],
+            self.hi[2] - self.lo[2],
+        )
     }
     fn area(&self) -> f32 {
-        let d = self.hi - self.lo;
+        let d = self.extent();
         if d.x < 0.0 {
             return 0.0;
         }
@@ -315,14 +328,16 @@ impl Binning {
             }
         };
         Binning {
-            lo: cb.lo,
+            lo: V3::new(cb.lo[0], cb.lo[1], cb.lo[2]),
             scale: V3::new(s(0), s(1), s(2)),
         }
     }
 
+    /// `⌊(c − lo)·scale⌋` clamped to the bins (NaN to 0). Through `i32`, whose saturating
+    /// conversion is a few instructions where `usize`'s is a dozen; same result for every input.
     #[inline(always)]
     fn of(&self, axis: usize, c: f32) -> usize {
-        (((c - self.lo[axis]) * self.scale[axis]) as usize).min(BINS - 1)
+        (((c - self.lo[axis]) * self.scale[axis]) as i32).clamp(0, BINS as i32 - 1) as usize
     }
 }
 
@@ -405,7 +420,7 @@ fn build_bin(prims: &mut [Prim], first: usize, depth: usize, bb: Aabb, cb: Aabb,
         None => {
             // No usable SAH split (coincident centroids, or past the depth limit): object
             // median along the widest centroid axis, ties by index.
-            let ext = cb.hi - cb.lo;
+            let ext = cb.extent();
             let axis = if ext.x >= ext.y && ext.x >= ext.z {
                 0
             } else if ext.y >= ext.z {
@@ -459,7 +474,11 @@ impl Bvh {
                 bb.grow_p(t.p0 + t.e2);
                 Prim {
                     bb,
-                    c: (bb.lo + bb.hi) * 0.5,
+                    c: V3::new(
+                        (bb.lo[0] + bb.hi[0]) * 0.5,
+                        (bb.lo[1] + bb.hi[1]) * 0.5,
+                        (bb.lo[2] + bb.hi[2]) * 0.5,
+                    ),
                     i: i as u32,
                 }
             })
