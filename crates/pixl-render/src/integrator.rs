@@ -127,9 +127,9 @@ impl Renderer {
     /// the same order, so the result equals tracing them one by one.
     pub fn render_pixel(&self, x: usize, y: usize) -> PixelSum {
         #[cfg(target_arch = "x86_64")]
-        if Isa::detect() == Isa::Avx2 {
-            // SAFETY: `Isa::detect` returns `Avx2` only after confirming every feature
-            // `render_pixel_avx2` is compiled for on this CPU.
+        if Isa::detect() >= Isa::Avx2 {
+            // SAFETY: `Isa::detect` returns `Avx2` or more only after confirming every
+            // feature `render_pixel_avx2` is compiled for on this CPU.
             return unsafe { self.render_pixel_avx2(x, y) };
         }
         self.render_pixel_body(x, y)

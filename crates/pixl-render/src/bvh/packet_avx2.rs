@@ -257,12 +257,12 @@ impl Bvh {
 /// exit (`o_far`) distance, the range of reciprocal directions, and the largest far limit.
 /// Rounding is monotonic, so for every lane its computed slab entry is ≥ the bound computed
 /// from these and its exit ≤ the bound: a box whose bounds do not overlap is entered by no lane.
-struct Frustum {
+pub(super) struct Frustum {
     o_near: [f32; 3],
     o_far: [f32; 3],
     inv_lo: [f32; 3],
     inv_hi: [f32; 3],
-    tmax: f32,
+    pub(super) tmax: f32,
 }
 
 impl Frustum {
@@ -271,7 +271,7 @@ impl Frustum {
     /// `0 · ∞` NaNs, which the lane test treats as an open slab), or a limit is NaN.
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn new(p: &RayPack, act: u32, sign: [bool; 3]) -> Option<Frustum> {
+    pub(super) fn new(p: &RayPack, act: u32, sign: [bool; 3]) -> Option<Frustum> {
         let mut f = Frustum {
             o_near: [0.0; 3],
             o_far: [0.0; 3],
@@ -313,7 +313,7 @@ impl Frustum {
     /// that some lane may enter.
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn may_enter(&self, n: &Node, near: [usize; 3], far: [usize; 3]) -> u32 {
+    pub(super) fn may_enter(&self, n: &Node, near: [usize; 3], far: [usize; 3]) -> u32 {
         const { assert!(NW == 4, "one SSE vector per node row") };
         let row = |r: usize| {
             let s: &[f32; 4] = &n.b[r];
