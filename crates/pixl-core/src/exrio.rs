@@ -129,6 +129,25 @@ pub fn read_exr_channels_from_bytes(bytes: &[u8], path: &Path) -> Result<ExrChan
     Ok(out)
 }
 
+/// `img` as the `exr` crate's single-layer image: f32 channels, ZIP in blocks of 16 lines.
+fn exr_image(
+    img: &ExrChannels,
+) -> exr::image::Image<exr::image::Layer<exr::image::AnyChannels<exr::image::FlatSamples>>> {
+    use exr::prelude::*;
+    let list: Vec<AnyChannel<FlatSamples>> = img
+        .channels
+        .iter()
+        .map(|(n, d)| AnyChannel::new(n.as_str(), FlatSamples::F32(d.clone())))
+        .collect();
+    let layer = Layer::new(
+        (img.width, img.height),
+        LayerAttributes::default(),
+        Encoding::SMALL_LOSSLESS,
+        AnyChannels::sort(list.into()),
+    );
+    exr::image::Image::from_layer(layer)
+}
+
 /// Writes all channels into one single-part f32 EXR, atomically.
 pub fn write_exr_channels(path: &Path, img: &ExrChannels) -> Result<()> {
     use exr::prelude::*;
@@ -142,18 +161,7 @@ pub fn write_exr_channels(path: &Path, img: &ExrChannels) -> Result<()> {
     if img.channels.is_empty() {
         return Err(CoreError::Invalid(format!("{}: no channels to write", path.display())));
     }
-    let list: Vec<AnyChannel<FlatSamples>> = img
-        .channels
-        .iter()
-        .map(|(n, d)| AnyChannel::new(n.as_str(), FlatSamples::F32(d.clone())))
-        .collect();
-    let layer = Layer::new(
-        (img.width, img.height),
-        LayerAttributes::default(),
-        Encoding::SMALL_LOSSLESS,
-        AnyChannels::sort(list.into()),
-    );
-    let image = exr::image::Image::from_layer(layer);
+    let image = exr_image(img);
     atomic_write(path, |file| {
         let mut w = std::io::BufWriter::new(file);
         // Blocks are compressed on several threads (exr's own pool) and written in increasing
@@ -194,19 +202,8 @@ mod tests {
         let ours = dir.path().join("ours.exr");
         write_exr_channels(&ours, &img).unwrap();
         // The same image through exr's one-thread writer.
-        let list: Vec<AnyChannel<FlatSamples>> = img
-            .channels
-            .iter()
-            .map(|(n, d)| AnyChannel::new(n.as_str(), FlatSamples::F32(d.clone())))
-            .collect();
-        let layer = Layer::new(
-            (w, h),
-            LayerAttributes::default(),
-            Encoding::SMALL_LOSSLESS,
-            AnyChannels::sort(list.into()),
-        );
         let mut one = Vec::new();
-        exr::image::Image::from_layer(layer)
+        exr_image(&img)
             .write()
             .non_parallel()
             .to_buffered(std::io::Cursor::new(&mut one))

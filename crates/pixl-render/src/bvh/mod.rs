@@ -49,6 +49,8 @@ use crate::math::V3;
 mod packet_avx2;
 #[cfg(target_arch = "x86_64")]
 mod packet_avx512;
+#[cfg(target_arch = "x86_64")]
+mod packet_simd;
 
 /// A triangle as stored for intersection: one vertex and two edges.
 #[derive(Clone, Copy, Debug)]

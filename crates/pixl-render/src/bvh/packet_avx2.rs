@@ -1,8 +1,6 @@
-//! Packet traversal written with AVX2 intrinsics: the algorithm of
-//! [`Bvh::traverse_packet_body`] (a node is visited while any active lane enters one of its
-//! children, children nearest-entry first, lanes retire at their first hit for any-hit
-//! queries), with each child box and each leaf triangle tested against the 16 lanes as two
-//! 8-wide vectors instead of lane loops.
+//! The AVX2 packet kernel: each child box and each leaf triangle tested against the 16 lanes
+//! of a packet as two 8-wide vectors (the loop around them is [`super::packet_simd`]'s), plus
+//! the [`Frustum`] bounds both SIMD kernels use.
 //!
 //! Contract: the same per-lane results as the portable body — every lane's box and triangle
 //! tests are the same IEEE operations in the same order (sub, mul, add and div only; no FMA,
@@ -11,18 +9,12 @@
 //! distances and barycentrics are bit-identical to [`super::intersect_tri`]'s. A half of 8
 //! lanes without active rays is skipped, so packets of up to 8 rays cost about half.
 //!
-//! Packets whose lanes share their direction signs (a pixel's camera rays, its shadow rays to
-//! one light) are also bounded as a whole ([`Frustum`]: ranges of origins and reciprocal
-//! directions, largest limit): a node's four children are first tested against those bounds in
-//! one SSE step, and only the children the bounds cannot exclude get the per-lane tests. The
-//! bounds are conservative under rounding (every operation is monotonic), so the per-lane
-//! masks, and with them the results, are exactly those without the step.
-//!
 //! Why: the portable body's lane loops compile to per-lane selects and bit gathers (~120 ns per
 //! node on the benchmark); this form tests a node's four children against 16 rays in ~40 ns,
 //! which makes packets of a pixel's divergent bounce and shadow rays cheaper than tracing them
 //! one by one (BENCHMARKS.md, session 15).
-use super::{Bvh, Node, PacketStack, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, NW, PACKET};
+use super::packet_simd::Lanes;
+use super::{Bvh, Node, RayPack, Tri4, NW, PACKET};
 use std::arch::x86_64::*;
 
 /// Lanes per vector; a packet is `HALVES` vectors.
@@ -94,161 +86,146 @@ fn hmax_u32(v: __m256i) -> u32 {
     _mm256_cvtsi256_si32(x) as u32
 }
 
+/// The AVX2 kernel's per-traversal state: per half and axis, the lanes whose direction is
+/// negative (as a vector mask, and as bits).
+pub(super) struct Avx2 {
+    neg: [[__m256; 3]; HALVES],
+    neg_bits: [u32; 3],
+}
+
 impl Bvh {
-    /// [`Bvh::traverse_packet_body`] with AVX2 intrinsics (see the module header). When every
-    /// active lane's direction has the same sign on each axis (the camera rays of a pixel, its
-    /// shadow rays towards one light), each axis's near and far planes are picked once per
-    /// node instead of blended per lane (same values, fewer instructions).
+    /// Packet traversal with the AVX2 kernel (see [`super::packet_simd`]).
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     pub(super) fn traverse_packet_avx2<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
-        let mut uniform = true;
-        let mut sign = [false; 3];
-        for (a, s) in sign.iter_mut().enumerate() {
-            let zero = _mm256_setzero_ps();
-            let neg = (0..HALVES).fold(0u32, |m, h| {
-                m | (_mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(ld(&p.inv[a], h), zero)) as u32) << (W * h)
-            }) & act;
-            uniform &= neg == 0 || neg == act;
-            *s = neg != 0;
-        }
-        if uniform {
-            self.traverse_packet_avx2_body::<ANY, true>(start, act, p, tmin, sign)
-        } else {
-            self.traverse_packet_avx2_body::<ANY, false>(start, act, p, tmin, sign)
+        // SAFETY: this function is compiled for, and only called with, the kernel's features.
+        let k = unsafe { Avx2::new(p) };
+        match Bvh::packet_signs(&k, act) {
+            (true, sign) => self.packet_avx2::<ANY, true>(&k, start, act, p, tmin, sign),
+            (false, sign) => self.packet_avx2::<ANY, false>(&k, start, act, p, tmin, sign),
         }
     }
 
-    /// The traversal; with `UNI`, every active lane's direction has the negative components
-    /// given by `sign` (the box's `hi` is the near plane on those axes).
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    fn traverse_packet_avx2_body<const ANY: bool, const UNI: bool>(
+    fn packet_avx2<const ANY: bool, const UNI: bool>(
         &self,
+        k: &Avx2,
         start: u32,
         act: u32,
         p: &mut RayPack,
         tmin: f32,
         sign: [bool; 3],
     ) {
-        // Per half and axis: lanes whose direction is negative (near plane = the box's `hi`).
+        // SAFETY: as in `traverse_packet_avx2`.
+        unsafe { self.packet_loop::<Avx2, ANY, UNI>(k, start, act, p, tmin, sign) }
+    }
+}
+
+impl Lanes for Avx2 {
+    #[inline]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn new(p: &RayPack) -> Avx2 {
         let zero = _mm256_setzero_ps();
         let neg: [[__m256; 3]; HALVES] =
             std::array::from_fn(|h| std::array::from_fn(|a| _mm256_cmp_ps::<_CMP_LT_OQ>(ld(&p.inv[a], h), zero)));
-        // Rows of `Node::b` holding each axis's near and far planes (used with `UNI`).
-        let near: [usize; 3] = std::array::from_fn(|a| a + 3 * sign[a] as usize);
-        let far: [usize; 3] = std::array::from_fn(|a| a + 3 - 3 * sign[a] as usize);
+        let neg_bits = std::array::from_fn(|a| {
+            (0..HALVES).fold(0u32, |m, h| m | (_mm256_movemask_ps(neg[h][a]) as u32) << (W * h))
+        });
+        Avx2 { neg, neg_bits }
+    }
+
+    #[inline(always)]
+    fn neg(&self, a: usize) -> u32 {
+        self.neg_bits[a]
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn children<const ANY: bool, const UNI: bool>(
+        &self,
+        n: &Node,
+        p: &RayPack,
+        act: u32,
+        enter: u32,
+        near: [usize; 3],
+        far: [usize; 3],
+    ) -> ([u32; NW], [u32; NW]) {
+        let zero = _mm256_setzero_ps();
         let slack = _mm256_set1_ps(1.000_000_2);
         let inf = _mm256_set1_ps(f32::INFINITY);
-        // With uniform signs, the packet's bounds: children no lane can enter are skipped
-        // before the per-lane tests.
-        let act0 = act;
-        let mut frustum = if UNI { Frustum::new(p, act, sign) } else { None };
-        let mut stack = PacketStack::new();
-        let (mut cur, mut act) = (start, act);
-        loop {
-            if ANY {
-                act &= !p.found;
+        let actv = [lane_mask(act, 0), lane_mask(act, 1)];
+        let mut cm = [0u32; NW];
+        let mut ct = [u32::MAX; NW];
+        for c in 0..NW {
+            if enter >> c & 1 == 0 {
+                continue;
             }
-            if act != 0 && act.count_ones() <= FINISH_ALONE && cur != EMPTY {
-                self.finish_lanes::<ANY>(cur, act, p, tmin);
-            } else if act != 0 && cur & LEAF == 0 {
-                let n = &self.nodes[cur as usize];
-                let actv = [lane_mask(act, 0), lane_mask(act, 1)];
-                let mut cm = [0u32; NW];
-                let mut ct = [u32::MAX; NW];
-                let enter = match &frustum {
-                    Some(f) => f.may_enter(n, near, far),
-                    None => (1 << NW) - 1,
-                };
-                for c in 0..NW {
-                    if enter >> c & 1 == 0 {
-                        continue;
-                    }
-                    let b = |row: usize| _mm256_set1_ps(n.b[row][c]);
-                    // Without `UNI`: low and high planes, blended per lane; with it: near and far.
-                    let (lx, ly, lz, hx, hy, hz) = if UNI {
-                        (b(near[0]), b(near[1]), b(near[2]), b(far[0]), b(far[1]), b(far[2]))
-                    } else {
-                        (b(0), b(1), b(2), b(3), b(4), b(5))
-                    };
-                    let mut m = 0u32;
-                    let mut entry = inf;
-                    for h in 0..HALVES {
-                        if (act >> (W * h)) & 0xff == 0 {
-                            continue;
-                        }
-                        let slab = |lo: __m256, hi: __m256, a: usize| {
-                            let (o, inv) = (ld(&p.o[a], h), ld(&p.inv[a], h));
-                            let a0 = _mm256_mul_ps(_mm256_sub_ps(lo, o), inv);
-                            let a1 = _mm256_mul_ps(_mm256_sub_ps(hi, o), inv);
-                            if UNI {
-                                (a0, a1)
-                            } else {
-                                (_mm256_blendv_ps(a0, a1, neg[h][a]), _mm256_blendv_ps(a1, a0, neg[h][a]))
-                            }
-                        };
-                        let (t0x, t1x) = slab(lx, hx, 0);
-                        let (t0y, t1y) = slab(ly, hy, 1);
-                        let (t0z, t1z) = slab(lz, hz, 2);
-                        // `maxps(a, b)` is `a > b ? a : b`: a NaN `a` keeps `b`, the slab stays open.
-                        let t0 = _mm256_max_ps(t0z, _mm256_max_ps(t0y, _mm256_max_ps(t0x, zero)));
-                        let t1 = _mm256_min_ps(t1z, _mm256_min_ps(t1y, _mm256_min_ps(t1x, ld(&p.tmax, h))));
-                        let hit = _mm256_and_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(t0, _mm256_mul_ps(t1, slack)), actv[h]);
-                        m |= (_mm256_movemask_ps(hit) as u32) << (W * h);
-                        if !ANY {
-                            entry = _mm256_min_ps(entry, _mm256_blendv_ps(inf, t0, hit));
-                        }
-                    }
-                    cm[c] = m;
-                    if !ANY && m != 0 {
-                        // Entry distances are ≥ +0, so their bits order as the floats do.
-                        ct[c] = hmin(entry).to_bits();
-                    }
-                }
-                let next = stack.push_children::<ANY>(self, n, &cm, &ct, |c, m| {
-                    self.traverse_packet_deep::<ANY>(c, m, p, tmin)
-                });
-                if let Some((c, m)) = next {
-                    (cur, act) = (c, m);
+            let b = |row: usize| _mm256_set1_ps(n.b[row][c]);
+            // Without `UNI`: low and high planes, blended per lane; with it: near and far.
+            let (lx, ly, lz, hx, hy, hz) = if UNI {
+                (b(near[0]), b(near[1]), b(near[2]), b(far[0]), b(far[1]), b(far[2]))
+            } else {
+                (b(0), b(1), b(2), b(3), b(4), b(5))
+            };
+            let mut m = 0u32;
+            let mut entry = inf;
+            for h in 0..HALVES {
+                if (act >> (W * h)) & 0xff == 0 {
                     continue;
                 }
-            } else if act != 0 && cur != EMPTY {
-                let mut hit = 0u32;
-                for pk in self.leaf_packets(cur) {
-                    for l in 0..4 {
-                        if pk.prim[l] == u32::MAX {
-                            break;
-                        }
-                        let m = tri_lanes(pk, l, p, tmin, act);
-                        p.record(m, pk, l);
-                        hit |= m;
+                let slab = |lo: __m256, hi: __m256, a: usize| {
+                    let (o, inv) = (ld(&p.o[a], h), ld(&p.inv[a], h));
+                    let a0 = _mm256_mul_ps(_mm256_sub_ps(lo, o), inv);
+                    let a1 = _mm256_mul_ps(_mm256_sub_ps(hi, o), inv);
+                    if UNI {
+                        (a0, a1)
+                    } else {
+                        let neg = self.neg[h][a];
+                        (_mm256_blendv_ps(a0, a1, neg), _mm256_blendv_ps(a1, a0, neg))
                     }
-                }
-                if !ANY && hit != 0 {
-                    if let Some(f) = &mut frustum {
-                        f.tmax = lanes_max(&p.tmax, act0);
-                    }
+                };
+                let (t0x, t1x) = slab(lx, hx, 0);
+                let (t0y, t1y) = slab(ly, hy, 1);
+                let (t0z, t1z) = slab(lz, hz, 2);
+                // `maxps(a, b)` is `a > b ? a : b`: a NaN `a` keeps `b`, the slab stays open.
+                let t0 = _mm256_max_ps(t0z, _mm256_max_ps(t0y, _mm256_max_ps(t0x, zero)));
+                let t1 = _mm256_min_ps(t1z, _mm256_min_ps(t1y, _mm256_min_ps(t1x, ld(&p.tmax, h))));
+                let hit = _mm256_and_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(t0, _mm256_mul_ps(t1, slack)), actv[h]);
+                m |= (_mm256_movemask_ps(hit) as u32) << (W * h);
+                if !ANY {
+                    entry = _mm256_min_ps(entry, _mm256_blendv_ps(inf, t0, hit));
                 }
             }
-            // Pop the next entry that can still hold a closer hit for one of its lanes.
-            let live = |m: u32, t: u32| {
-                if ANY {
-                    return m & !p.found != 0;
-                }
-                // Farthest limit (as bits, as the portable body compares them) among the
-                // entry's lanes.
-                let mut far = _mm256_setzero_si256();
-                for h in 0..HALVES {
-                    let lanes = _mm256_castps_si256(lane_mask(m, h));
-                    let bits = _mm256_castps_si256(ld(&p.tmax, h));
-                    far = _mm256_max_epu32(far, _mm256_and_si256(bits, lanes));
-                }
-                t <= hmax_u32(far)
-            };
-            match stack.pop(live) {
-                Some((c, m)) => (cur, act) = (c, m),
-                None => return,
+            cm[c] = m;
+            if !ANY && m != 0 {
+                // Entry distances are ≥ +0, so their bits order as the floats do.
+                ct[c] = hmin(entry).to_bits();
             }
         }
+        (cm, ct)
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn tri(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
+        tri_lanes(pk, l, p, tmin, act)
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn lanes_max(v: &[f32; PACKET], act: u32) -> f32 {
+        lanes_max(v, act)
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn far_bits(p: &RayPack, m: u32) -> u32 {
+        let mut far = _mm256_setzero_si256();
+        for h in 0..HALVES {
+            let lanes = _mm256_castps_si256(lane_mask(m, h));
+            let bits = _mm256_castps_si256(ld(&p.tmax, h));
+            far = _mm256_max_epu32(far, _mm256_and_si256(bits, lanes));
+        }
+        hmax_u32(far)
     }
 }
 
