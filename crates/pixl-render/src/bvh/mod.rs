@@ -1852,6 +1852,45 @@ mod tests {
     /// of a surface to a quad light (finite limits or none), camera-like rays from one point,
     /// and widely spread rays from a spread of origins — each lane against brute force.
     #[test]
+    fn rays_in_a_box_face_match_brute_force() {
+        // Rays in the plane x = −2 of the height field's left edge, direction x exactly +0 or
+        // −0: every box with that face gives the slab distance 0 · ±∞ = NaN, which must leave
+        // the slab open, for they hit the edge triangles exactly on their edges (v = 0).
+        // Packets of +0 lanes, of −0 lanes and mixed; single rays too.
+        let tris = grid(40);
+        let (bvh, perm) = Bvh::build(&tris);
+        let mut rng = Rng::new(5);
+        let rays: Vec<Ray> = (0..64)
+            .map(|k| {
+                let o = V3::new(-2.0, rng.uniform(-1.4, 1.4), 2.0);
+                let mut d = V3::new(0.0, rng.uniform(-0.2, 0.2), -1.0).normalize();
+                d.x = if k < 16 || (k >= 32 && k % 2 == 0) { 0.0 } else { -0.0 };
+                Ray::new(o, d)
+            })
+            .collect();
+        let tmax = vec![f32::INFINITY; rays.len()];
+        for isa in Isa::available() {
+            let mut got = vec![None; rays.len()];
+            bvh.intersect_packet_isa(isa, &rays, 0.0, &tmax, &mut got);
+            let mut occ = vec![false; rays.len()];
+            bvh.occluded_packet_isa(isa, &rays, 0.0, &tmax, &mut occ);
+            for (j, ray) in rays.iter().enumerate() {
+                let want = brute(&tris, ray, 0.0, f32::INFINITY);
+                assert!(want.is_some(), "ray {j} should hit an edge triangle");
+                let single = bvh.intersect_isa(isa, ray, 0.0, f32::INFINITY);
+                for (what, got) in [("packet", &got[j]), ("single", &single)] {
+                    match (want, got) {
+                        (Some(w), Some(h)) => same_hit(&tris, &perm, ray, 0.0, f32::INFINITY, w, h),
+                        (w, g) => panic!("{isa:?} {what} ray {j}: brute {w:?} vs bvh {g:?}"),
+                    }
+                }
+                assert!(occ[j], "{isa:?} ray {j}: not occluded");
+                assert!(bvh.occluded_isa(isa, ray, 0.0, f32::INFINITY), "{isa:?} single ray {j}");
+            }
+        }
+    }
+
+    #[test]
     fn sign_uniform_packets_match_brute_force() {
         for (tris, seed) in [(grid(60), 21), (soup(2000, 7), 22)] {
             let (bvh, perm) = Bvh::build(&tris);
