@@ -567,13 +567,9 @@ impl Bvh {
     fn append(&mut self, sub: Bvh) -> u32 {
         let (no, po) = (self.nodes.len() as u32, self.packets.len() as u32);
         self.nodes.extend(sub.nodes.into_iter().map(|mut n| {
-            for c in &mut n.child {
-                if *c == EMPTY {
-                } else if *c & LEAF != 0 {
-                    *c += po;
-                } else {
-                    *c += no;
-                }
+            // Leaf codes hold a packet index in their low bits, interior codes a node index.
+            for c in n.child.iter_mut().filter(|c| **c != EMPTY) {
+                *c += if *c & LEAF != 0 { po } else { no };
             }
             n
         }));

@@ -12,9 +12,10 @@
 //! the per-lane tests. The bounds are conservative under rounding (every operation is
 //! monotonic), so the per-lane masks, and with them the results, are exactly those without it.
 //!
-//! Everything here is `#[inline(always)]` and `unsafe`: it is compiled into each kernel's
-//! `#[target_feature]` entry points, which the caller may use only on a CPU that has those
-//! features ([`super::Isa::detect`]).
+//! The loop is `#[inline(always)]` and `unsafe`: it is compiled into each kernel's
+//! `#[target_feature]` entry points (whose `Lanes` methods carry the same features, so that
+//! their intrinsics inline), which the caller may use only on a CPU that has those features
+//! ([`super::Isa::detect`]).
 use super::packet_avx2::Frustum;
 use super::{Bvh, Node, PacketStack, RayPack, Tri4, EMPTY, FINISH_ALONE, LEAF, NW, PACKET};
 
