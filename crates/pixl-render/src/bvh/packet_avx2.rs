@@ -98,25 +98,7 @@ impl Bvh {
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     pub(super) fn traverse_packet_avx2<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
         // SAFETY: this function is compiled for, and only called with, the kernel's features.
-        let k = unsafe { Avx2::new(p) };
-        match Bvh::packet_signs(&k, act) {
-            (true, sign) => self.packet_avx2::<ANY, true>(&k, start, act, p, tmin, sign),
-            (false, sign) => self.packet_avx2::<ANY, false>(&k, start, act, p, tmin, sign),
-        }
-    }
-
-    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    fn packet_avx2<const ANY: bool, const UNI: bool>(
-        &self,
-        k: &Avx2,
-        start: u32,
-        act: u32,
-        p: &mut RayPack,
-        tmin: f32,
-        sign: [bool; 3],
-    ) {
-        // SAFETY: as in `traverse_packet_avx2`.
-        unsafe { self.packet_loop::<Avx2, ANY, UNI>(k, start, act, p, tmin, sign) }
+        unsafe { self.packet_traverse::<Avx2, ANY>(start, act, p, tmin) }
     }
 }
 

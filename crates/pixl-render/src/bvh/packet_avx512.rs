@@ -48,25 +48,7 @@ impl Bvh {
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt,avx512f")]
     pub(super) fn traverse_packet_avx512<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
         // SAFETY: this function is compiled for, and only called with, the kernel's features.
-        let k = unsafe { Avx512::new(p) };
-        match Bvh::packet_signs(&k, act) {
-            (true, sign) => self.packet_avx512::<ANY, true>(&k, start, act, p, tmin, sign),
-            (false, sign) => self.packet_avx512::<ANY, false>(&k, start, act, p, tmin, sign),
-        }
-    }
-
-    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt,avx512f")]
-    fn packet_avx512<const ANY: bool, const UNI: bool>(
-        &self,
-        k: &Avx512,
-        start: u32,
-        act: u32,
-        p: &mut RayPack,
-        tmin: f32,
-        sign: [bool; 3],
-    ) {
-        // SAFETY: as in `traverse_packet_avx512`.
-        unsafe { self.packet_loop::<Avx512, ANY, UNI>(k, start, act, p, tmin, sign) }
+        unsafe { self.packet_traverse::<Avx512, ANY>(start, act, p, tmin) }
     }
 }
 

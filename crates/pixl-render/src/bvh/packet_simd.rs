@@ -50,13 +50,34 @@ pub(super) trait Lanes: Sized {
 }
 
 impl Bvh {
-    /// Packet traversal of the subtree under `start` for the lanes in `act` with kernel `K`;
-    /// `sign`: with `UNI`, the axes on which every active lane's direction is negative.
+    /// Packet traversal of the subtree under `start` for the lanes in `act` with kernel `K`:
+    /// its per-traversal state, then the loop specialised for sign-uniform packets or not.
+    ///
+    /// # Safety
+    /// As [`Bvh::packet_loop`].
+    #[inline(always)]
+    pub(super) unsafe fn packet_traverse<K: Lanes, const ANY: bool>(
+        &self,
+        start: u32,
+        act: u32,
+        p: &mut RayPack,
+        tmin: f32,
+    ) {
+        // SAFETY (all three): the caller's contract.
+        let k = unsafe { K::new(p) };
+        match Bvh::packet_signs(&k, act) {
+            (true, sign) => unsafe { self.packet_loop::<K, ANY, true>(&k, start, act, p, tmin, sign) },
+            (false, sign) => unsafe { self.packet_loop::<K, ANY, false>(&k, start, act, p, tmin, sign) },
+        }
+    }
+
+    /// The loop of [`Bvh::packet_traverse`]; `sign`: with `UNI`, the axes on which every active
+    /// lane's direction is negative.
     ///
     /// # Safety
     /// The CPU has `K`'s target features (and AVX2, which [`Frustum`] uses).
     #[inline(always)]
-    pub(super) unsafe fn packet_loop<K: Lanes, const ANY: bool, const UNI: bool>(
+    unsafe fn packet_loop<K: Lanes, const ANY: bool, const UNI: bool>(
         &self,
         k: &K,
         start: u32,
@@ -134,7 +155,7 @@ impl Bvh {
     /// Whether every active lane's direction has the same sign on each axis, and which axes
     /// are negative (for [`Bvh::packet_loop`]'s `UNI` and `sign`).
     #[inline(always)]
-    pub(super) fn packet_signs<K: Lanes>(k: &K, act: u32) -> (bool, [bool; 3]) {
+    fn packet_signs<K: Lanes>(k: &K, act: u32) -> (bool, [bool; 3]) {
         let mut uniform = true;
         let mut sign = [false; 3];
         for (a, s) in sign.iter_mut().enumerate() {
