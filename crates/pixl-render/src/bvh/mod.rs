@@ -31,7 +31,7 @@
 //!   share one traversal: a node is visited while any live lane enters it. On AVX2 CPUs the
 //!   kernel is written with intrinsics (`packet_avx2.rs`: a child box or a triangle against 16
 //!   lanes in two 8-wide vectors), on AVX-512 CPUs in one 16-wide vector with mask registers
-//!   (`packet_avx512.rs`: packets 25–45 % faster, the benchmark render ~6 % on a Zen 5, session
+//!   (`packet_avx512.rs`: packets 25–45 % faster, the benchmark render ~4 % on a Zen 5, session
 //!   19); elsewhere portable lane loops. Once a node is reached by at
 //!   most `FINISH_ALONE` (3) live lanes, each finishes that subtree by single-ray traversal
 //!   (cheaper per node than a nearly empty packet). Per lane, results equal the single-ray
@@ -251,18 +251,31 @@ fn bounds(prims: &[Prim], par: bool) -> (Aabb, Aabb) {
         }
         (bb, cb)
     };
+    by_chunks(prims, par, one, |(mut b0, mut c0), (b1, c1)| {
+        b0.grow(&b1);
+        c0.grow(&c1);
+        (b0, c0)
+    })
+}
+
+/// `one(prims)`, or with `par` and from [`PAR_BIN`] primitives on, `one` of parallel chunks
+/// combined by `merge` (which must be associative, as unions and sums are: the result is the
+/// same either way).
+fn by_chunks<T: Send>(
+    prims: &[Prim],
+    par: bool,
+    one: impl Fn(&[Prim]) -> T + Sync,
+    merge: impl Fn(T, T) -> T + Sync + Send,
+) -> T {
     if !par || prims.len() < PAR_BIN {
         return one(prims);
     }
     use rayon::prelude::*;
-    prims.par_chunks(PAR_BIN / 4).map(one).reduce(
-        || (Aabb::EMPTY, Aabb::EMPTY),
-        |(mut b0, mut c0), (b1, c1)| {
-            b0.grow(&b1);
-            c0.grow(&c1);
-            (b0, c0)
-        },
-    )
+    prims
+        .par_chunks(PAR_BIN / 4)
+        .map(&one)
+        .reduce_with(merge)
+        .unwrap_or_else(|| one(&[]))
 }
 
 /// SAH bins of one node on the three axes at once: per axis and bin, the union of the boxes
@@ -301,20 +314,12 @@ impl Bins {
 
     /// The bins of `prims`.
     fn gather(prims: &[Prim], bin: &Binning, par: bool) -> Bins {
-        if !par || prims.len() < PAR_BIN {
+        let one = |prims: &[Prim]| {
             let mut b = Bins::EMPTY;
             b.add(prims, bin);
-            return b;
-        }
-        use rayon::prelude::*;
-        prims
-            .par_chunks(PAR_BIN / 4)
-            .map(|c| {
-                let mut b = Bins::EMPTY;
-                b.add(c, bin);
-                b
-            })
-            .reduce(|| Bins::EMPTY, |a, b| a.merge(&b))
+            b
+        };
+        by_chunks(prims, par, one, |a, b| a.merge(&b))
     }
 }
 

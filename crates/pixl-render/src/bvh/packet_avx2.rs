@@ -189,7 +189,55 @@ impl Lanes for Avx2 {
     #[inline]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     unsafe fn tri(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
-        tri_lanes(pk, l, p, tmin, act)
+        let s = |v: f32| _mm256_set1_ps(v);
+        let (e1x, e1y, e1z) = (s(pk.e1[0][l]), s(pk.e1[1][l]), s(pk.e1[2][l]));
+        let (e2x, e2y, e2z) = (s(pk.e2[0][l]), s(pk.e2[1][l]), s(pk.e2[2][l]));
+        let (p0x, p0y, p0z) = (s(pk.p0[0][l]), s(pk.p0[1][l]), s(pk.p0[2][l]));
+        let prim = _mm256_set1_epi32(pk.prim[l] as i32);
+        let (one, zero, tiny, tminv) = (s(1.0), s(0.0), s(1e-20), s(tmin));
+        let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
+        let (mul, sub, add) = (_mm256_mul_ps, _mm256_sub_ps, _mm256_add_ps);
+        let mut out = 0u32;
+        for h in 0..HALVES {
+            if (act >> (W * h)) & 0xff == 0 {
+                continue;
+            }
+            let (dx, dy, dz) = (ld(&p.d[0], h), ld(&p.d[1], h), ld(&p.d[2], h));
+            let (ox, oy, oz) = (ld(&p.o[0], h), ld(&p.o[1], h), ld(&p.o[2], h));
+            let px = sub(mul(dy, e2z), mul(dz, e2y));
+            let py = sub(mul(dz, e2x), mul(dx, e2z));
+            let pz = sub(mul(dx, e2y), mul(dy, e2x));
+            let det = add(add(mul(e1x, px), mul(e1y, py)), mul(e1z, pz));
+            let inv = _mm256_div_ps(one, det);
+            let (sx, sy, sz) = (sub(ox, p0x), sub(oy, p0y), sub(oz, p0z));
+            let u = mul(add(add(mul(sx, px), mul(sy, py)), mul(sz, pz)), inv);
+            let qx = sub(mul(sy, e1z), mul(sz, e1y));
+            let qy = sub(mul(sz, e1x), mul(sx, e1z));
+            let qz = sub(mul(sx, e1y), mul(sy, e1x));
+            let v = mul(add(add(mul(dx, qx), mul(dy, qy)), mul(dz, qz)), inv);
+            let tt = mul(add(add(mul(e2x, qx), mul(e2y, qy)), mul(e2z, qz)), inv);
+            let tmax = ld(&p.tmax, h);
+            let and = _mm256_and_ps;
+            let mut ok = _mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_and_ps(det, abs_mask), tiny);
+            ok = and(ok, _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero));
+            ok = and(ok, _mm256_cmp_ps::<_CMP_LE_OQ>(u, one));
+            ok = and(ok, _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero));
+            ok = and(ok, _mm256_cmp_ps::<_CMP_LE_OQ>(add(u, v), one));
+            ok = and(ok, _mm256_cmp_ps::<_CMP_GT_OQ>(tt, tminv));
+            ok = and(ok, _mm256_cmp_ps::<_CMP_LT_OQ>(tt, tmax));
+            ok = and(ok, lane_mask(act, h));
+            let same = _mm256_castsi256_ps(_mm256_cmpeq_epi32(prim, ld_u32(&p.skip, h)));
+            ok = _mm256_andnot_ps(same, ok);
+            let bits = _mm256_movemask_ps(ok) as u32;
+            if bits != 0 {
+                st(&mut p.tmax, h, _mm256_blendv_ps(tmax, tt, ok));
+                let (b1, b2) = (ld(&p.b1, h), ld(&p.b2, h));
+                st(&mut p.b1, h, _mm256_blendv_ps(b1, u, ok));
+                st(&mut p.b2, h, _mm256_blendv_ps(b2, v, ok));
+                out |= bits << (W * h);
+            }
+        }
+        out
     }
 
     #[inline]
@@ -318,61 +366,4 @@ fn lanes_max(v: &[f32; PACKET], act: u32) -> f32 {
         _mm256_blendv_ps(ninf, ld(v, 1), lane_mask(act, 1)),
     );
     hmax(m)
-}
-
-/// Lane `l` of packet `pk` against every ray of `p` active in `act` (the operations of
-/// [`super::intersect_tri`] in the same order); lanes hit closer than their current limit get
-/// the hit recorded (distance, barycentrics) and are returned as a mask.
-#[inline]
-#[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-fn tri_lanes(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
-    let s = |v: f32| _mm256_set1_ps(v);
-    let (e1x, e1y, e1z) = (s(pk.e1[0][l]), s(pk.e1[1][l]), s(pk.e1[2][l]));
-    let (e2x, e2y, e2z) = (s(pk.e2[0][l]), s(pk.e2[1][l]), s(pk.e2[2][l]));
-    let (p0x, p0y, p0z) = (s(pk.p0[0][l]), s(pk.p0[1][l]), s(pk.p0[2][l]));
-    let prim = _mm256_set1_epi32(pk.prim[l] as i32);
-    let (one, zero, tiny, tminv) = (s(1.0), s(0.0), s(1e-20), s(tmin));
-    let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
-    let (mul, sub, add) = (_mm256_mul_ps, _mm256_sub_ps, _mm256_add_ps);
-    let mut out = 0u32;
-    for h in 0..HALVES {
-        if (act >> (W * h)) & 0xff == 0 {
-            continue;
-        }
-        let (dx, dy, dz) = (ld(&p.d[0], h), ld(&p.d[1], h), ld(&p.d[2], h));
-        let (ox, oy, oz) = (ld(&p.o[0], h), ld(&p.o[1], h), ld(&p.o[2], h));
-        let px = sub(mul(dy, e2z), mul(dz, e2y));
-        let py = sub(mul(dz, e2x), mul(dx, e2z));
-        let pz = sub(mul(dx, e2y), mul(dy, e2x));
-        let det = add(add(mul(e1x, px), mul(e1y, py)), mul(e1z, pz));
-        let inv = _mm256_div_ps(one, det);
-        let (sx, sy, sz) = (sub(ox, p0x), sub(oy, p0y), sub(oz, p0z));
-        let u = mul(add(add(mul(sx, px), mul(sy, py)), mul(sz, pz)), inv);
-        let qx = sub(mul(sy, e1z), mul(sz, e1y));
-        let qy = sub(mul(sz, e1x), mul(sx, e1z));
-        let qz = sub(mul(sx, e1y), mul(sy, e1x));
-        let v = mul(add(add(mul(dx, qx), mul(dy, qy)), mul(dz, qz)), inv);
-        let tt = mul(add(add(mul(e2x, qx), mul(e2y, qy)), mul(e2z, qz)), inv);
-        let tmax = ld(&p.tmax, h);
-        let and = _mm256_and_ps;
-        let mut ok = _mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_and_ps(det, abs_mask), tiny);
-        ok = and(ok, _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero));
-        ok = and(ok, _mm256_cmp_ps::<_CMP_LE_OQ>(u, one));
-        ok = and(ok, _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero));
-        ok = and(ok, _mm256_cmp_ps::<_CMP_LE_OQ>(add(u, v), one));
-        ok = and(ok, _mm256_cmp_ps::<_CMP_GT_OQ>(tt, tminv));
-        ok = and(ok, _mm256_cmp_ps::<_CMP_LT_OQ>(tt, tmax));
-        ok = and(ok, lane_mask(act, h));
-        let same = _mm256_castsi256_ps(_mm256_cmpeq_epi32(prim, ld_u32(&p.skip, h)));
-        ok = _mm256_andnot_ps(same, ok);
-        let bits = _mm256_movemask_ps(ok) as u32;
-        if bits != 0 {
-            st(&mut p.tmax, h, _mm256_blendv_ps(tmax, tt, ok));
-            let (b1, b2) = (ld(&p.b1, h), ld(&p.b2, h));
-            st(&mut p.b1, h, _mm256_blendv_ps(b1, u, ok));
-            st(&mut p.b2, h, _mm256_blendv_ps(b2, v, ok));
-            out |= bits << (W * h);
-        }
-    }
-    out
 }

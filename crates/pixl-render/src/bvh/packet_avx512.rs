@@ -8,7 +8,7 @@
 //! results bit for bit (tested against brute force and the other kernels).
 //!
 //! Why: on a Zen 5 host, packets of a pixel's rays are 25–45 % faster than with the AVX2 kernel
-//! and the benchmark render ~5 % (BENCHMARKS.md, session 19).
+//! and the benchmark render ~4 % (BENCHMARKS.md, session 19).
 use super::packet_simd::Lanes;
 use super::{Bvh, Node, RayPack, Tri4, NW, PACKET};
 use std::arch::x86_64::*;
@@ -123,7 +123,41 @@ impl Lanes for Avx512 {
     #[inline]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt,avx512f")]
     unsafe fn tri(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
-        tri_lanes(pk, l, p, tmin, act)
+        let s = |v: f32| _mm512_set1_ps(v);
+        let (e1x, e1y, e1z) = (s(pk.e1[0][l]), s(pk.e1[1][l]), s(pk.e1[2][l]));
+        let (e2x, e2y, e2z) = (s(pk.e2[0][l]), s(pk.e2[1][l]), s(pk.e2[2][l]));
+        let (p0x, p0y, p0z) = (s(pk.p0[0][l]), s(pk.p0[1][l]), s(pk.p0[2][l]));
+        let (mul, sub, add) = (_mm512_mul_ps, _mm512_sub_ps, _mm512_add_ps);
+        let (dx, dy, dz) = (ld(&p.d[0]), ld(&p.d[1]), ld(&p.d[2]));
+        let (ox, oy, oz) = (ld(&p.o[0]), ld(&p.o[1]), ld(&p.o[2]));
+        let px = sub(mul(dy, e2z), mul(dz, e2y));
+        let py = sub(mul(dz, e2x), mul(dx, e2z));
+        let pz = sub(mul(dx, e2y), mul(dy, e2x));
+        let det = add(add(mul(e1x, px), mul(e1y, py)), mul(e1z, pz));
+        let inv = _mm512_div_ps(s(1.0), det);
+        let (sx, sy, sz) = (sub(ox, p0x), sub(oy, p0y), sub(oz, p0z));
+        let u = mul(add(add(mul(sx, px), mul(sy, py)), mul(sz, pz)), inv);
+        let qx = sub(mul(sy, e1z), mul(sz, e1y));
+        let qy = sub(mul(sz, e1x), mul(sx, e1z));
+        let qz = sub(mul(sx, e1y), mul(sy, e1x));
+        let v = mul(add(add(mul(dx, qx), mul(dy, qy)), mul(dz, qz)), inv);
+        let tt = mul(add(add(mul(e2x, qx), mul(e2y, qy)), mul(e2z, qz)), inv);
+        let tmax = ld(&p.tmax);
+        let mut ok = act as __mmask16;
+        ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(ok, _mm512_abs_ps(det), s(1e-20));
+        ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(ok, u, s(0.0));
+        ok = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(ok, u, s(1.0));
+        ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(ok, v, s(0.0));
+        ok = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(ok, add(u, v), s(1.0));
+        ok = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(ok, tt, s(tmin));
+        ok = _mm512_mask_cmp_ps_mask::<_CMP_LT_OQ>(ok, tt, tmax);
+        ok &= !_mm512_cmpeq_epi32_mask(_mm512_set1_epi32(pk.prim[l] as i32), ld_u32(&p.skip));
+        if ok != 0 {
+            st_masked(&mut p.tmax, ok, tt);
+            st_masked(&mut p.b1, ok, u);
+            st_masked(&mut p.b2, ok, v);
+        }
+        ok as u32
     }
 
     #[inline]
@@ -137,47 +171,4 @@ impl Lanes for Avx512 {
     unsafe fn far_bits(p: &RayPack, m: u32) -> u32 {
         _mm512_mask_reduce_max_epu32(m as __mmask16, _mm512_castps_si512(ld(&p.tmax)))
     }
-}
-
-/// Lane `l` of packet `pk` against every ray of `p` active in `act` (the operations of
-/// [`super::intersect_tri`] in the same order); lanes hit closer than their current limit get
-/// the hit recorded (distance, barycentrics) and are returned as a mask.
-#[inline]
-#[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt,avx512f")]
-fn tri_lanes(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
-    let s = |v: f32| _mm512_set1_ps(v);
-    let (e1x, e1y, e1z) = (s(pk.e1[0][l]), s(pk.e1[1][l]), s(pk.e1[2][l]));
-    let (e2x, e2y, e2z) = (s(pk.e2[0][l]), s(pk.e2[1][l]), s(pk.e2[2][l]));
-    let (p0x, p0y, p0z) = (s(pk.p0[0][l]), s(pk.p0[1][l]), s(pk.p0[2][l]));
-    let (mul, sub, add) = (_mm512_mul_ps, _mm512_sub_ps, _mm512_add_ps);
-    let (dx, dy, dz) = (ld(&p.d[0]), ld(&p.d[1]), ld(&p.d[2]));
-    let (ox, oy, oz) = (ld(&p.o[0]), ld(&p.o[1]), ld(&p.o[2]));
-    let px = sub(mul(dy, e2z), mul(dz, e2y));
-    let py = sub(mul(dz, e2x), mul(dx, e2z));
-    let pz = sub(mul(dx, e2y), mul(dy, e2x));
-    let det = add(add(mul(e1x, px), mul(e1y, py)), mul(e1z, pz));
-    let inv = _mm512_div_ps(s(1.0), det);
-    let (sx, sy, sz) = (sub(ox, p0x), sub(oy, p0y), sub(oz, p0z));
-    let u = mul(add(add(mul(sx, px), mul(sy, py)), mul(sz, pz)), inv);
-    let qx = sub(mul(sy, e1z), mul(sz, e1y));
-    let qy = sub(mul(sz, e1x), mul(sx, e1z));
-    let qz = sub(mul(sx, e1y), mul(sy, e1x));
-    let v = mul(add(add(mul(dx, qx), mul(dy, qy)), mul(dz, qz)), inv);
-    let tt = mul(add(add(mul(e2x, qx), mul(e2y, qy)), mul(e2z, qz)), inv);
-    let tmax = ld(&p.tmax);
-    let mut ok = act as __mmask16;
-    ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(ok, _mm512_abs_ps(det), s(1e-20));
-    ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(ok, u, s(0.0));
-    ok = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(ok, u, s(1.0));
-    ok = _mm512_mask_cmp_ps_mask::<_CMP_GE_OQ>(ok, v, s(0.0));
-    ok = _mm512_mask_cmp_ps_mask::<_CMP_LE_OQ>(ok, add(u, v), s(1.0));
-    ok = _mm512_mask_cmp_ps_mask::<_CMP_GT_OQ>(ok, tt, s(tmin));
-    ok = _mm512_mask_cmp_ps_mask::<_CMP_LT_OQ>(ok, tt, tmax);
-    ok &= !_mm512_cmpeq_epi32_mask(_mm512_set1_epi32(pk.prim[l] as i32), ld_u32(&p.skip));
-    if ok != 0 {
-        st_masked(&mut p.tmax, ok, tt);
-        st_masked(&mut p.b1, ok, u);
-        st_masked(&mut p.b2, ok, v);
-    }
-    ok as u32
 }
