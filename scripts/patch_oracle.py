@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Upper bounds for source-modulating relighting on a `pixl synth` set (BENCHMARKS.md, session 11).
+"""Upper bounds for source-modulating relighting on a `pixl synth` set (BENCHMARKS.md, "Demo weights vs baselines").
 
 For every test pair i -> i+1 of each scene, scores (per-channel least-squares scale correction, PSNR,
 SSIM with an 11-tap Gaussian window, sigma 1.5, as `pixl eval`):

@@ -398,14 +398,14 @@ struct Nee {
 
 /// Fewest rays of a batch traced as one packet; smaller batches go one by one (a packet's
 /// cost depends little on how many of its lanes are live). Measured on the bench scene
-/// (BENCHMARKS.md, session 15).
+/// (git history of BENCHMARKS.md).
 const MIN_SHADOW_PACKET: usize = 4;
 const MIN_BOUNCE_PACKET: usize = 8;
 
 /// The rays of some lanes of a packet of paths, compacted into the first slots of a
 /// [`RayPack`], for one BVH query. Its queries (and the light hit tests after them) are
 /// `#[inline(always)]` so that they are compiled into the AVX2 pixel loop rather than as
-/// separate baseline functions (render instructions −1.5 %, BENCHMARKS.md session 18).
+/// separate baseline functions (render instructions −1.5 %, git history of BENCHMARKS.md).
 struct Batch {
     pack: RayPack,
     /// Lane of each ray, and slot of each lane's ray.

@@ -1,5 +1,5 @@
 //! Peak memory and step time of training steps, with and without gradient checkpointing
-//! (BENCHMARKS.md, "Training memory: gradient checkpointing"). Run it under `/usr/bin/time -v`
+//! (BENCHMARKS.md, "Training step: precision, checkpointing, memory"). Run it under `/usr/bin/time -v`
 //! for the peak RSS:
 //!
 //! ```text

@@ -10,7 +10,7 @@
 //! after reordering with the permutation it returns.
 //!
 //! Layout, chosen by measurement on the ~500 k-triangle depth-mesh benchmark (see
-//! BENCHMARKS.md): traversal is bound by memory latency, so the tree is shallow and wide.
+//! BENCHMARKS.md): the tree is shallow and wide (a render is bound by traversal instructions).
 //! - Build: binned SAH (12 bins × 3 axes) with a packet-aware cost (`ceil(n/4)` per side),
 //!   leaves of at most 4 triangles (one packet); deterministic (ties broken by index, subtrees
 //!   built in parallel but laid out in a fixed order), so a scene always gives the same tree.
@@ -20,7 +20,7 @@
 //!   for node, as on one thread: tested).
 //! - Nodes: 128-byte, 64-byte-aligned, structure-of-arrays boxes of 4 children, so the four
 //!   slab tests are plain lane loops the compiler turns into SIMD on stable Rust (SSE2).
-//!   (8-wide nodes, `NW = 8`, measured in session 16: 43 % fewer nodes but no faster — shadow
+//!   (8-wide nodes, `NW = 8`, measured: 43 % fewer nodes but no faster — shadow
 //!   packets 6.4 → 4.3 Mrays/s, single rays unchanged.)
 //! - Leaves: [`Tri4`] packets (vertex and two edges per lane, lanes padded with zero-area
 //!   triangles that never hit), tested 4 at a time the same way.
@@ -967,9 +967,9 @@ impl Bvh {
 
 /// A packet traversal reaching a node with at most this many live lanes finishes the
 /// subtree for each of them by single-ray traversal ([`Bvh::finish_lanes`]). Measured on the
-/// bench scene's bounce packets: 3.6 → 4.4 Mrays/s (BENCHMARKS.md, session 15); 3 since the
+/// bench scene's bounce packets: 3.6 → 4.4 Mrays/s (git history of BENCHMARKS.md); 3 since the
 /// hand-off is inlined into the packet kernel (render instructions −1.6 % against 2 at 256²,
-/// 4 −2.2 %, 6 −1.6 %; timing within noise; session 18).
+/// 4 −2.2 %, 6 −1.6 %; timing within noise).
 const FINISH_ALONE: u32 = 3;
 
 /// Rays per packet of [`Bvh::intersect_packet`] / [`Bvh::occluded_packet`].
@@ -1179,7 +1179,7 @@ impl Bvh {
     /// live lanes, a single ray visits a node for less than a packet does. Same hits as the
     /// packet traversal (same triangle test), within each lane's current limit. The single-ray
     /// body is inlined here, so it is compiled for the calling kernel's instruction set and a
-    /// hand-off costs no call or dispatch (render instructions −2.7 %, BENCHMARKS.md session 18).
+    /// hand-off costs no call or dispatch (render instructions −2.7 %, git history of BENCHMARKS.md).
     #[inline(always)]
     fn finish_lanes<const ANY: bool>(&self, cur: u32, mut lanes: u32, p: &mut RayPack, tmin: f32) {
         while lanes != 0 {

@@ -12,7 +12,7 @@
 //! Why: the portable body's lane loops compile to per-lane selects and bit gathers (~120 ns per
 //! node on the benchmark); this form tests a node's four children against 16 rays in ~40 ns,
 //! which makes packets of a pixel's divergent bounce and shadow rays cheaper than tracing them
-//! one by one (BENCHMARKS.md, session 15).
+//! one by one (git history of BENCHMARKS.md).
 use super::packet_simd::Lanes;
 use super::{Bvh, Node, RayPack, Tri4, NW, PACKET};
 use std::arch::x86_64::*;

@@ -8,7 +8,7 @@
 //! results bit for bit (tested against brute force and the other kernels).
 //!
 //! Why: on a Zen 5 host, packets of a pixel's rays are 25–45 % faster than with the AVX2 kernel
-//! and the benchmark render ~4 % (BENCHMARKS.md, session 19).
+//! and the benchmark render ~4 % (git history of BENCHMARKS.md).
 use super::packet_simd::Lanes;
 use super::{Bvh, Node, RayPack, Tri4, NW, PACKET};
 use std::arch::x86_64::*;
