@@ -179,6 +179,80 @@ fn samples(n: usize, stride: usize) -> Vec<usize> {
     v
 }
 
+/// Why a triangle of the grid was cut.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Cut {
+    /// A corner has no valid depth.
+    MissingDepth,
+    /// Its depths differ by more than `max_jump`.
+    DepthJump,
+}
+
+/// Calls `f` with every triangle of the sample grid (corners as grid coordinates) and why it is
+/// cut, if it is.
+fn for_each_triangle(
+    depth: &DepthMap,
+    xs: &[usize],
+    ys: &[usize],
+    opts: &MeshOptions,
+    mut f: impl FnMut([(usize, usize); 3], Option<Cut>),
+) {
+    let depth_at = |(gx, gy): (usize, usize)| depth.get(xs[gx], ys[gy]);
+    let cut = |ids: [(usize, usize); 3]| -> Option<Cut> {
+        let d = ids.map(depth_at);
+        if !d.iter().all(|&v| is_valid(v, opts.max_depth)) {
+            return Some(Cut::MissingDepth);
+        }
+        let lo = d[0].min(d[1]).min(d[2]);
+        let hi = d[0].max(d[1]).max(d[2]);
+        (hi / lo - 1.0 > opts.max_jump).then_some(Cut::DepthJump)
+    };
+    for gy in 0..ys.len().saturating_sub(1) {
+        for gx in 0..xs.len().saturating_sub(1) {
+            // a b      (image rows grow downwards; camera +Y is up)
+            // c d
+            let (a, b, c, d) = ((gx, gy), (gx + 1, gy), (gx, gy + 1), (gx + 1, gy + 1));
+            for t in [[a, c, d], [a, d, b]] {
+                f(t, cut(t));
+            }
+        }
+    }
+}
+
+/// How the triangles of [`depth_to_mesh`]'s grid fare under `opts`, for messages that name the
+/// right cause when few or none are kept.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CutCounts {
+    /// Vertices of the sample grid across and down (`stride` decides them).
+    pub grid: (usize, usize),
+    /// Triangles kept.
+    pub kept: usize,
+    /// Triangles cut because a corner has no valid depth.
+    pub missing_depth: usize,
+    /// Triangles cut at a depth jump over `max_jump`.
+    pub depth_jump: usize,
+}
+
+/// Counts kept and cut triangles as [`depth_to_mesh`] would (options unchecked: a zero stride
+/// counts as 1).
+pub fn cut_counts(depth: &DepthMap, opts: &MeshOptions) -> CutCounts {
+    if depth.width == 0 || depth.height == 0 || depth.data.len() != depth.width * depth.height {
+        return CutCounts::default();
+    }
+    let xs = samples(depth.width, opts.stride.max(1));
+    let ys = samples(depth.height, opts.stride.max(1));
+    let mut c = CutCounts {
+        grid: (xs.len(), ys.len()),
+        ..Default::default()
+    };
+    for_each_triangle(depth, &xs, &ys, opts, |_, cut| match cut {
+        None => c.kept += 1,
+        Some(Cut::MissingDepth) => c.missing_depth += 1,
+        Some(Cut::DepthJump) => c.depth_jump += 1,
+    });
+    c
+}
+
 /// Unprojects every (strided) pixel and triangulates the grid (see the module docs).
 ///
 /// `normals`, if given, is a 3-channel **camera-space** normal map of the depth map's size
@@ -213,33 +287,14 @@ pub fn depth_to_mesh(depth: &DepthMap, intr: &Intrinsics, normals: Option<&Image
     let xs = samples(w, opts.stride);
     let ys = samples(h, opts.stride);
     let (gw, gh) = (xs.len(), ys.len());
-    let depth_at = |gx: usize, gy: usize| depth.get(xs[gx], ys[gy]);
-    let valid = |gx: usize, gy: usize| is_valid(depth_at(gx, gy), opts.max_depth);
 
     // Triangles over the grid of samples, in grid-vertex ids `gy * gw + gx`.
     let mut tris: Vec<[usize; 3]> = Vec::with_capacity(2 * (gw - 1) * (gh - 1));
-    let keep = |ids: [(usize, usize); 3]| -> bool {
-        if !ids.iter().all(|&(x, y)| valid(x, y)) {
-            return false;
+    for_each_triangle(depth, &xs, &ys, opts, |t, cut| {
+        if cut.is_none() {
+            tris.push(t.map(|(x, y)| y * gw + x));
         }
-        let d = ids.map(|(x, y)| depth_at(x, y));
-        let lo = d[0].min(d[1]).min(d[2]);
-        let hi = d[0].max(d[1]).max(d[2]);
-        hi / lo - 1.0 <= opts.max_jump
-    };
-    for gy in 0..gh.saturating_sub(1) {
-        for gx in 0..gw.saturating_sub(1) {
-            // a b      (image rows grow downwards; camera +Y is up)
-            // c d
-            let (a, b, c, d) = ((gx, gy), (gx + 1, gy), (gx, gy + 1), (gx + 1, gy + 1));
-            let id = |(x, y): (usize, usize)| y * gw + x;
-            for t in [[a, c, d], [a, d, b]] {
-                if keep(t) {
-                    tris.push(t.map(id));
-                }
-            }
-        }
-    }
+    });
 
     // Compact: only vertices that a kept triangle uses, in grid order.
     let mut remap = vec![u32::MAX; gw * gh];
@@ -640,6 +695,59 @@ impl Lexer<'_> {
                 self.expect(b')')?;
                 return Ok(v);
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod cut_count_tests {
+    use super::*;
+
+    /// A 5×4 map: a floor whose depth grows 10 % per row, and one pixel without depth. Counted
+    /// by hand: at stride 1, 4×3 quads = 24 triangles; the 6 around (2, 1) lack depth; rows
+    /// differ by 10 % (> 5 %), so every other triangle spans a jump and none is kept; with
+    /// max_jump 0.2 all 18 with depth are kept. At stride 4 the grid is 2×2 (x 0, 4; y 0, 3),
+    /// 2 triangles, the rows 33 % apart.
+    #[test]
+    fn counts_by_cause() {
+        let (w, h) = (5, 4);
+        let mut data: Vec<f32> = (0..w * h).map(|i| 1.1f32.powi((i / w) as i32)).collect();
+        data[w + 2] = 0.0;
+        let map = DepthMap {
+            width: w,
+            height: h,
+            data,
+        };
+        let at = |stride: usize, max_jump: f32| {
+            cut_counts(
+                &map,
+                &MeshOptions {
+                    stride,
+                    max_jump,
+                    ..Default::default()
+                },
+            )
+        };
+        let c = at(1, 0.05);
+        assert_eq!((c.grid, c.kept, c.missing_depth, c.depth_jump), ((5, 4), 0, 6, 18));
+        let c = at(1, 0.2);
+        assert_eq!((c.kept, c.missing_depth, c.depth_jump), (18, 6, 0));
+        let c = at(4, 0.2);
+        assert_eq!((c.grid, c.kept, c.depth_jump), ((2, 2), 0, 2));
+        // depth_to_mesh keeps what cut_counts calls kept.
+        let k = Intrinsics::from_vfov_deg(w, h, 50.0).unwrap();
+        for (stride, jump) in [(1, 0.05), (1, 0.2), (4, 0.2), (2, 0.2)] {
+            let opts = MeshOptions {
+                stride,
+                max_jump: jump,
+                ..Default::default()
+            };
+            let mesh = depth_to_mesh(&map, &k, None, &opts).unwrap();
+            assert_eq!(
+                mesh.num_triangles(),
+                at(stride, jump).kept,
+                "stride {stride}, jump {jump}"
+            );
         }
     }
 }

@@ -1,0 +1,347 @@
+//! `pixl estimate depth`: a photo → a depth map with Depth Anything 3 (paper §3.4), written as a
+//! single-channel OpenEXR (channel `Z`) that `pixl reconstruct --depth` reads.
+//!
+//! - **Model**: `da3-metric` (default; depth in metres, scaled by the focal length) or `da3-mono`
+//!   (relative depth, up to scale: reconstruct it with `--depth-kind relative`). Weights: see
+//!   `pixl models` (models folder, Hugging Face cache, download on first use; `--offline`).
+//! - **Focal length** (for the metric scale and the camera): `--focal`, `--fov`, EXIF, default
+//!   50° vertical; see [`super::exif`].
+//! - **Sky** (the estimator's sky score ≥ its threshold) is written as depth **0** = missing:
+//!   `pixl reconstruct` builds no mesh there and the scene's world stands in for it.
+//! - **Outputs** are checked before any work (extension, folder exists, none is the photo, none
+//!   repeats), each written atomically.
+use super::exif::{photo_focal, Focal};
+use super::models::WeightsArgs;
+use crate::Ctx;
+use anyhow::{bail, Context};
+use pixl_core::output::check_output;
+use pixl_core::Image;
+use pixl_estimate::da3::{Da3, Da3Options, Da3Variant, DepthEstimate};
+use pixl_estimate::hub::{self, Resolved};
+use std::path::{Path, PathBuf};
+
+/// Smallest photo side the estimators accept (one 14-pixel ViT patch).
+pub const MIN_SIDE: usize = 14;
+
+#[derive(clap::Subcommand, Debug)]
+pub enum Command {
+    /// Depth (and sky) from one photo with Depth Anything 3.
+    #[command(
+        after_help = "Examples:\n  pixl estimate depth photo.jpg -o depth.exr --preview depth.png\n  \
+pixl estimate depth photo.jpg -o depth.exr --model da3-mono --fov 60 --sky sky.png --json\n\n\
+Then: pixl reconstruct --image photo.jpg --depth depth.exr -o scene/ (metric), or add --depth-kind relative \
+--depth-range NEAR,FAR for da3-mono.\nSky pixels are written as depth 0 (missing): they get no mesh."
+    )]
+    Depth(DepthArgs),
+}
+
+/// The depth estimators.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum DepthModel {
+    /// Metric depth in metres (needs a focal length; see --fov/--focal).
+    #[value(name = "da3-metric")]
+    Da3Metric,
+    /// Relative depth (up to scale).
+    #[value(name = "da3-mono")]
+    Da3Mono,
+}
+
+impl DepthModel {
+    pub fn name(self) -> &'static str {
+        match self {
+            DepthModel::Da3Metric => "da3-metric",
+            DepthModel::Da3Mono => "da3-mono",
+        }
+    }
+    fn variant(self) -> Da3Variant {
+        match self {
+            DepthModel::Da3Metric => Da3Variant::Metric,
+            DepthModel::Da3Mono => Da3Variant::Mono,
+        }
+    }
+}
+
+#[derive(clap::Args, Debug)]
+pub struct DepthArgs {
+    /// The photo (PNG/JPEG/EXR).
+    pub photo: PathBuf,
+    /// Output depth map (.exr, one channel `Z`; metres for da3-metric; sky and missing = 0).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+    /// The estimator.
+    #[arg(long, value_enum, default_value_t = DepthModel::Da3Metric)]
+    pub model: DepthModel,
+    /// Also write a preview (.png/.jpg: inverse depth in grey, near = bright, sky = black).
+    #[arg(long)]
+    pub preview: Option<PathBuf>,
+    /// Also write the sky mask (.png: 255 = sky).
+    #[arg(long)]
+    pub sky: Option<PathBuf>,
+    /// Longest side the photo is resized to for the network (a multiple of 14 after rounding).
+    #[arg(long, default_value_t = 504)]
+    pub process_res: usize,
+    /// Vertical field of view in degrees (else --focal, else EXIF, else 50).
+    #[arg(long, conflicts_with = "focal")]
+    pub fov: Option<f64>,
+    /// Focal length in pixels at the photo's resolution.
+    #[arg(long)]
+    pub focal: Option<f64>,
+    /// Device: cpu, or cuda[:N] (needs a build with `--features cuda`).
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Print a JSON summary on stdout (statistics, focal length, where the weights came from).
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub weights: WeightsArgs,
+}
+
+pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
+    match command {
+        Command::Depth(a) => depth(a, ctx),
+    }
+}
+
+/// Reads a photo for an estimator: RGB, finite, at least [`MIN_SIDE`] on each side, sRGB-encoded
+/// values in [0, 1] (EXR photos are linear and get encoded).
+pub fn read_photo(path: &Path) -> anyhow::Result<Image> {
+    let img = pixl_core::io::read_rgb_finite(path).context("reading the photo")?;
+    if img.width < MIN_SIDE || img.height < MIN_SIDE {
+        bail!(
+            "{}: the photo is {}x{}; depth estimation needs at least {MIN_SIDE}x{MIN_SIDE} pixels",
+            path.display(),
+            img.width,
+            img.height
+        );
+    }
+    Ok(if pixl_core::io::extension(path) == "exr" {
+        img.map(|v| pixl_core::image::linear_to_srgb(v.clamp(0.0, 1.0)))
+    } else {
+        img
+    })
+}
+
+/// Checks `--process-res`.
+pub fn check_process_res(r: usize) -> anyhow::Result<()> {
+    if !(MIN_SIDE..=4096).contains(&r) {
+        bail!("--process-res {r}: must be between {MIN_SIDE} and 4096");
+    }
+    Ok(())
+}
+
+/// A depth estimate with its provenance.
+pub struct Estimated {
+    pub estimate: DepthEstimate,
+    pub weights: Resolved,
+    pub model: DepthModel,
+    pub focal: Focal,
+}
+
+impl Estimated {
+    /// The depth with sky (and anything non-finite or ≤ 0) as 0 = missing.
+    pub fn depth_without_sky(&self) -> Vec<f32> {
+        let d = &self.estimate.depth;
+        (0..d.width * d.height)
+            .map(|i| {
+                let v = d.data[i * d.channels];
+                let sky = self.estimate.sky_mask.get(i).copied().unwrap_or(false);
+                if sky || !v.is_finite() || v <= 0.0 {
+                    0.0
+                } else {
+                    v
+                }
+            })
+            .collect()
+    }
+}
+
+/// Finds (or downloads) the weights, loads the model, and estimates the photo's depth.
+pub fn estimate_depth(
+    photo: &Image,
+    model: DepthModel,
+    focal: Focal,
+    process_res: usize,
+    device: &str,
+    weights: &WeightsArgs,
+    ctx: &Ctx,
+) -> anyhow::Result<Estimated> {
+    let spec = hub::lookup(model.name())?;
+    let hub = weights.hub();
+    let resolved = super::models::resolve(&hub, spec, ctx)?;
+    let device = super::eval::parse_device(device)?;
+    tracing::debug!("{}: weights from {}", spec.name, resolved.source);
+    let net = Da3::load(&resolved.dir, &device)
+        .with_context(|| format!("loading `{}` from {}", spec.name, resolved.dir.display()))?;
+    if net.variant() != model.variant() {
+        bail!(
+            "{}: the checkpoint is DA3 {:?}, but `{}` was asked for (a config.json of another model?)",
+            resolved.dir.display(),
+            net.variant(),
+            spec.name
+        );
+    }
+    let opts = Da3Options {
+        process_res,
+        focal_px_at_photo: Some(focal.px),
+    };
+    let estimate = net
+        .estimate(photo, &opts)
+        .with_context(|| format!("estimating depth with `{}`", spec.name))?;
+    let d = &estimate.depth;
+    if (d.width, d.height) != (photo.width, photo.height) || d.channels < 1 {
+        bail!(
+            "`{}` returned a {}x{}x{} depth map for a {}x{} photo",
+            spec.name,
+            d.width,
+            d.height,
+            d.channels,
+            photo.width,
+            photo.height
+        );
+    }
+    Ok(Estimated {
+        estimate,
+        weights: resolved,
+        model,
+        focal,
+    })
+}
+
+/// Min, median and max of the positive values (None if there are none).
+fn stats(v: &[f32]) -> Option<(f32, f32, f32)> {
+    let mut s: Vec<f32> = v.iter().copied().filter(|x| *x > 0.0).collect();
+    if s.is_empty() {
+        return None;
+    }
+    s.sort_by(f32::total_cmp);
+    Some((s[0], s[s.len() / 2], s[s.len() - 1]))
+}
+
+/// Inverse depth in grey, normalised between its 2nd and 98th percentiles; missing = black.
+fn preview(w: usize, h: usize, depth: &[f32]) -> Image {
+    let mut inv: Vec<f32> = depth.iter().filter(|d| **d > 0.0).map(|d| 1.0 / d).collect();
+    inv.sort_by(f32::total_cmp);
+    let q = |p: f64| {
+        inv.get(((inv.len().saturating_sub(1)) as f64 * p).round() as usize)
+            .copied()
+    };
+    let (lo, hi) = (q(0.02).unwrap_or(0.0), q(0.98).unwrap_or(1.0));
+    let span = if hi > lo { hi - lo } else { 1.0 };
+    Image::from_fn(w, h, 1, |x, y, _| {
+        let d = depth[y * w + x];
+        if d > 0.0 {
+            (0.05 + 0.95 * ((1.0 / d - lo) / span).clamp(0.0, 1.0)).min(1.0)
+        } else {
+            0.0
+        }
+    })
+}
+
+fn depth(args: DepthArgs, ctx: &Ctx) -> anyhow::Result<()> {
+    // Everything that can be checked without the photo or the model, first.
+    let ctx = &ctx.for_json(args.json);
+    check_output(&args.out, &["exr"], &[&args.photo])?;
+    if let Some(p) = &args.preview {
+        check_output(p, &["png", "jpg", "jpeg"], &[&args.photo, &args.out])?;
+    }
+    if let Some(s) = &args.sky {
+        let mut inputs: Vec<&Path> = vec![&args.photo, &args.out];
+        inputs.extend(args.preview.as_deref());
+        check_output(s, &["png"], &inputs)?;
+    }
+    check_process_res(args.process_res)?;
+    let photo = read_photo(&args.photo)?;
+    let (w, h) = (photo.width, photo.height);
+    let focal = photo_focal(&args.photo, w, h, args.focal, args.fov)?;
+    let est = estimate_depth(
+        &photo,
+        args.model,
+        focal,
+        args.process_res,
+        &args.device,
+        &args.weights,
+        ctx,
+    )?;
+    let depth = est.depth_without_sky();
+    let mut chans = pixl_core::exrio::ExrChannels::new(w, h);
+    chans.push("Z", depth.clone())?;
+    pixl_core::exrio::write_exr_channels(&args.out, &chans)?;
+    if let Some(p) = &args.preview {
+        let img = preview(w, h, &depth);
+        pixl_core::io::write_png(p, &img, pixl_core::io::PngDepth::Eight)?;
+    }
+    let sky_px = est.estimate.sky_mask.iter().filter(|s| **s).count();
+    if let Some(s) = &args.sky {
+        let mask = Image::from_fn(w, h, 1, |x, y, _| {
+            if est.estimate.sky_mask.get(y * w + x).copied().unwrap_or(false) {
+                1.0
+            } else {
+                0.0
+            }
+        });
+        pixl_core::io::write_png(s, &mask, pixl_core::io::PngDepth::Eight)?;
+    }
+    let st = stats(&depth);
+    let unit = if est.estimate.metric { "m" } else { "(relative)" };
+    if args.json {
+        let v = serde_json::json!({
+            "photo": args.photo.display().to_string(),
+            "out": args.out.display().to_string(),
+            "preview": args.preview.as_ref().map(|p| p.display().to_string()),
+            "sky": args.sky.as_ref().map(|p| p.display().to_string()),
+            "model": est.model.name(),
+            "metric": est.estimate.metric,
+            "width": w,
+            "height": h,
+            "processed_size": [est.estimate.processed_size.0, est.estimate.processed_size.1],
+            "focal_px": est.focal.px,
+            "vfov_deg": est.focal.vfov_deg(h),
+            "focal_source": est.focal.source.to_string(),
+            "depth_min": st.map(|s| s.0),
+            "depth_median": st.map(|s| s.1),
+            "depth_max": st.map(|s| s.2),
+            "sky_fraction": sky_px as f64 / (w * h) as f64,
+            "weights": {
+                "dir": est.weights.dir.display().to_string(),
+                "source": est.weights.source.to_string(),
+                "licence": est.weights.spec.licence,
+            },
+        });
+        return ctx.print_json(&v);
+    }
+    let range = match st {
+        Some((lo, med, hi)) => format!("depth {lo:.3}–{hi:.3} {unit}, median {med:.3}"),
+        None => "no pixel has a depth (all sky?)".into(),
+    };
+    ctx.say(format!(
+        "{}: {w}x{h}, {range}, sky {:.1} % (written as 0), focal {:.1} px ({}) -> {}",
+        est.model.name(),
+        100.0 * sky_px as f64 / (w * h) as f64,
+        est.focal.px,
+        est.focal.source,
+        args.out.display()
+    ));
+    ctx.say(format!(
+        "weights: {} ({}), from {}",
+        est.weights.spec.repo, est.weights.spec.licence, est.weights.source
+    ));
+    if !est.estimate.metric {
+        ctx.say("relative depth: reconstruct it with --depth-kind relative --depth-range NEAR,FAR");
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn preview_is_brighter_nearer_and_black_where_missing() {
+        let d = [1.0, 2.0, 4.0, 0.0];
+        let p = preview(4, 1, &d);
+        assert!(p.data[0] > p.data[1] && p.data[1] > p.data[2] && p.data[2] > 0.0);
+        assert_eq!(p.data[3], 0.0);
+        assert_eq!(stats(&d), Some((1.0, 2.0, 4.0)));
+        assert_eq!(stats(&[0.0]), None);
+    }
+}

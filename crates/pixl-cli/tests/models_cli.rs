@@ -1,0 +1,351 @@
+//! `pixl models list | path | fetch` on fake weight folders: the lookup order (models folder,
+//! then the Hugging Face cache in the Python layout), `--json`, and the offline failures. No test
+//! touches the network: every run has `PIXL_OFFLINE=1` or `--offline`, and a private HOME.
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::{Arc, Mutex};
+
+/// `pixl` with an environment that points only into `home` (no user cache, no network).
+fn pixl(home: &Path) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_pixl"));
+    for v in [
+        "PIXL_MODELS_DIR",
+        "PIXL_OFFLINE",
+        "HF_HUB_CACHE",
+        "HUGGINGFACE_HUB_CACHE",
+        "HF_HOME",
+        "XDG_CACHE_HOME",
+        "HF_TOKEN",
+        "HF_HUB_OFFLINE",
+        "ALL_PROXY",
+        "all_proxy",
+        "HTTPS_PROXY",
+        "https_proxy",
+        "HTTP_PROXY",
+        "http_proxy",
+    ] {
+        c.env_remove(v);
+    }
+    // Offline, and even if that failed, a download would go to a closed local port.
+    c.env("HOME", home)
+        .env("PIXL_OFFLINE", "1")
+        .env("HF_ENDPOINT", "http://127.0.0.1:9");
+    c
+}
+
+fn run(c: &mut Command) -> (Output, String, String) {
+    let o = c.output().expect("run pixl");
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    (o, out, err)
+}
+
+fn write(p: &Path, bytes: &[u8]) {
+    std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+    std::fs::write(p, bytes).unwrap();
+}
+
+/// A Python-layout cache entry for `repo` with the DA3 files (plain files, refs/main).
+fn fake_cache(hub: &Path, repo: &str, commit: &str) -> PathBuf {
+    let root = hub.join(format!("models--{}", repo.replace('/', "--")));
+    let snap = root.join("snapshots").join(commit);
+    write(&snap.join("config.json"), b"{}");
+    write(&snap.join("model.safetensors"), b"weights");
+    write(&root.join("refs").join("main"), commit.as_bytes());
+    snap
+}
+
+fn entry<'a>(list: &'a serde_json::Value, name: &str) -> &'a serde_json::Value {
+    list.as_array()
+        .unwrap()
+        .iter()
+        .find(|m| m["name"] == name)
+        .unwrap_or_else(|| panic!("{name} not listed: {list}"))
+}
+
+#[test]
+fn list_says_what_is_where() {
+    let t = tempfile::tempdir().unwrap();
+    let hf = t.path().join("hf");
+    let snap = fake_cache(&hf.join("hub"), "depth-anything/DA3METRIC-LARGE", "c0ffee");
+    let (o, out, err) = run(pixl(t.path()).env("HF_HOME", &hf).args(["models", "list", "--json"]));
+    assert!(o.status.success(), "{err}");
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap_or_else(|e| panic!("{e}: {out}"));
+    let m = entry(&v, "da3-metric");
+    assert_eq!(m["present"], true);
+    assert_eq!(m["dir"], snap.display().to_string());
+    assert_eq!(m["repo"], "depth-anything/DA3METRIC-LARGE");
+    assert_eq!(m["licence"], "Apache-2.0");
+    assert_eq!(m["files"], serde_json::json!(["config.json", "model.safetensors"]));
+    let m = entry(&v, "da3-mono");
+    assert_eq!(
+        (m["present"].clone(), m["dir"].clone()),
+        (false.into(), serde_json::Value::Null)
+    );
+    assert_eq!(m["repo"], "depth-anything/DA3MONO-LARGE");
+
+    let (o, out, err) = run(pixl(t.path()).env("HF_HOME", &hf).args(["models", "list"]));
+    assert!(o.status.success(), "{err}");
+    for needle in [
+        "da3-metric",
+        "da3-mono",
+        "Apache-2.0",
+        "1.4 GB",
+        &snap.display().to_string(),
+    ] {
+        assert!(out.contains(needle), "{needle:?} missing from:\n{out}");
+    }
+}
+
+/// HF_HUB_CACHE wins over HF_HOME; `path` prints the snapshot folder; `fetch` of a model on
+/// disk does not download.
+#[test]
+fn path_and_fetch_use_the_cache_without_network() {
+    let t = tempfile::tempdir().unwrap();
+    let decoy = fake_cache(&t.path().join("hf/hub"), "depth-anything/DA3MONO-LARGE", "aaa");
+    let snap = fake_cache(&t.path().join("cache"), "depth-anything/DA3MONO-LARGE", "bbb");
+    let env = |c: &mut Command| {
+        c.env("HF_HOME", t.path().join("hf"))
+            .env("HF_HUB_CACHE", t.path().join("cache"));
+    };
+    let mut c = pixl(t.path());
+    env(&mut c);
+    let (o, out, err) = run(c.args(["models", "path", "da3-mono"]));
+    assert!(o.status.success(), "{err}");
+    assert_eq!(out.trim(), snap.display().to_string());
+    assert_ne!(snap, decoy);
+
+    let mut c = pixl(t.path());
+    env(&mut c);
+    let (o, out, err) = run(c.args(["models", "path", "da3-mono", "--json"]));
+    assert!(o.status.success(), "{err}");
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(
+        v["files"]["model.safetensors"],
+        snap.join("model.safetensors").display().to_string()
+    );
+    assert!(v["source"].as_str().unwrap().contains("bbb"), "{v}");
+
+    let mut c = pixl(t.path());
+    env(&mut c);
+    let (o, out, err) = run(c.args(["models", "fetch", "da3-mono", "--offline"]));
+    assert!(o.status.success(), "{err}");
+    assert!(out.contains(&snap.display().to_string()), "{out}");
+    assert!(!err.contains("downloading"), "{err}");
+}
+
+/// `--models DIR` (and PIXL_MODELS_DIR) come before the Hugging Face cache.
+#[test]
+fn models_folder_comes_first() {
+    let t = tempfile::tempdir().unwrap();
+    fake_cache(
+        &t.path().join(".cache/huggingface/hub"),
+        "depth-anything/DA3METRIC-LARGE",
+        "c1",
+    );
+    let own = t.path().join("weights/da3-metric");
+    write(&own.join("config.json"), b"{}");
+    write(&own.join("model.safetensors"), b"w");
+    // Without a models folder: the default cache under HOME.
+    let (o, out, err) = run(pixl(t.path()).args(["models", "path", "da3-metric"]));
+    assert!(o.status.success(), "{err}");
+    assert!(out.trim().ends_with("snapshots/c1"), "{out}");
+    // With one, by flag and by variable.
+    let weights = t.path().join("weights");
+    let (o, out, err) = run(pixl(t.path())
+        .args(["models", "path", "da3-metric", "--models"])
+        .arg(&weights));
+    assert!(o.status.success(), "{err}");
+    assert_eq!(out.trim(), own.display().to_string());
+    let (o, out, err) = run(pixl(t.path())
+        .env("PIXL_MODELS_DIR", &weights)
+        .args(["models", "path", "da3-metric"]));
+    assert!(o.status.success(), "{err}");
+    assert_eq!(out.trim(), own.display().to_string());
+}
+
+#[test]
+fn a_models_folder_lacking_a_file_is_named() {
+    let t = tempfile::tempdir().unwrap();
+    write(&t.path().join("w/da3-mono/config.json"), b"{}");
+    let (o, _, err) = run(pixl(t.path())
+        .args(["models", "fetch", "da3-mono", "--models"])
+        .arg(t.path().join("w")));
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("model.safetensors") && err.contains("da3-mono"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
+
+/// Offline with nothing on disk: an immediate error naming `pixl models fetch NAME` and
+/// `--models DIR`, whichever way offline was asked for.
+#[test]
+fn offline_without_weights_names_the_fetch_command() {
+    let t = tempfile::tempdir().unwrap();
+    /// Extra flags, and an environment variable to set.
+    type Case<'a> = (&'a [&'a str], Option<(&'a str, &'a str)>);
+    let cases: [Case; 3] = [
+        (&["--offline"], None),
+        (&[], Some(("PIXL_OFFLINE", "1"))),
+        (&[], Some(("HF_HUB_OFFLINE", "1"))),
+    ];
+    for (flags, var) in cases {
+        let mut c = pixl(t.path());
+        c.env_remove("PIXL_OFFLINE");
+        if let Some((k, v)) = var {
+            c.env(k, v);
+        }
+        let start = std::time::Instant::now();
+        let (o, _, err) = run(c.args(["models", "fetch", "da3-mono"]).args(flags));
+        assert_eq!(o.status.code(), Some(1), "{flags:?} {var:?}: {err}");
+        assert!(
+            err.contains("pixl models fetch da3-mono") && err.contains("--models DIR"),
+            "{flags:?} {var:?}: {err}"
+        );
+        assert!(!err.contains("downloading"), "{err}");
+        // No network attempt: it fails at once.
+        assert!(start.elapsed().as_secs() < 20);
+    }
+    // `path` never downloads: not on disk is an error naming the fetch command.
+    let mut c = pixl(t.path());
+    c.env_remove("PIXL_OFFLINE");
+    let (o, _, err) = run(c.args(["models", "path", "da3-metric"]));
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("not on this machine") && err.contains("pixl models fetch da3-metric"),
+        "{err}"
+    );
+    let (o, _, err) = run(pixl(t.path()).args(["models", "path", "da3"]));
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        err.contains("unknown model `da3`") && err.contains("da3-metric"),
+        "{err}"
+    );
+}
+
+/// A stand-in for the Hub's `resolve` endpoint on a loopback port (no network): serves
+/// `/<repo>/resolve/main/<file>` for the given files with the headers `hf-hub` reads (`etag`,
+/// `x-repo-commit`, `content-range`), honouring `Range: bytes=A-[B]`; 404 otherwise. Returns the
+/// endpoint and the log of requested paths.
+fn serve(repo: &str, files: Vec<(&'static str, Vec<u8>)>, commit: &'static str) -> (String, Arc<Mutex<Vec<String>>>) {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let endpoint = format!("http://{}", listener.local_addr().unwrap());
+    let log = Arc::new(Mutex::new(Vec::new()));
+    let log2 = log.clone();
+    let prefix = format!("/{repo}/resolve/main/");
+    std::thread::spawn(move || {
+        for stream in listener.incoming() {
+            let Ok(mut stream) = stream else { continue };
+            let mut buf = Vec::new();
+            let mut chunk = [0u8; 1024];
+            while !buf.windows(4).any(|w| w == b"\r\n\r\n") {
+                match stream.read(&mut chunk) {
+                    Ok(0) | Err(_) => break,
+                    Ok(n) => buf.extend_from_slice(&chunk[..n]),
+                }
+            }
+            let req = String::from_utf8_lossy(&buf).into_owned();
+            let path = req.split_whitespace().nth(1).unwrap_or("").to_string();
+            log2.lock().unwrap().push(path.clone());
+            let range = req
+                .lines()
+                .find_map(|l| l.to_ascii_lowercase().strip_prefix("range: bytes=").map(str::to_string));
+            let file = path
+                .strip_prefix(&prefix)
+                .and_then(|name| files.iter().find(|(n, _)| *n == name));
+            let response = match file {
+                Some((name, bytes)) => {
+                    let len = bytes.len();
+                    let (a, b) = match range.as_deref().and_then(|r| r.split_once('-')) {
+                        Some((a, b)) => (
+                            a.trim().parse().unwrap_or(0),
+                            b.trim().parse().unwrap_or(len - 1).min(len - 1),
+                        ),
+                        None => (0, len - 1),
+                    };
+                    let mut r = format!(
+                        "HTTP/1.1 206 Partial Content\r\ncontent-length: {}\r\netag: \"etag-{name}\"\r\n\
+x-repo-commit: {commit}\r\ncontent-range: bytes {a}-{b}/{len}\r\nconnection: close\r\n\r\n",
+                        b + 1 - a
+                    )
+                    .into_bytes();
+                    r.extend_from_slice(&bytes[a..=b]);
+                    r
+                }
+                None => b"HTTP/1.1 404 Not Found\r\ncontent-length: 0\r\nconnection: close\r\n\r\n".to_vec(),
+            };
+            let _ = stream.write_all(&response);
+        }
+    });
+    (endpoint, log)
+}
+
+/// The download path end to end, against a loopback stand-in for the Hub: the licence and size
+/// are printed first, the files land in the Python cache layout (a later lookup finds them with
+/// no request), and `pixl estimate depth` then runs on the downloaded checkpoint.
+#[test]
+fn downloads_on_first_use_then_reuses_the_cache() {
+    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/da3/tiny");
+    let config = std::fs::read(tiny.join("config.json")).unwrap();
+    let weights = std::fs::read(tiny.join("model.safetensors")).unwrap();
+    let (endpoint, log) = serve(
+        "depth-anything/DA3MONO-LARGE",
+        vec![("config.json", config.clone()), ("model.safetensors", weights.clone())],
+        "0123456789abcdef0123456789abcdef01234567",
+    );
+    let t = tempfile::tempdir().unwrap();
+    let online = |c: &mut Command| {
+        c.env_remove("PIXL_OFFLINE").env("HF_ENDPOINT", &endpoint);
+    };
+    // Into a models folder.
+    let weights_dir = t.path().join("weights");
+    let mut c = pixl(t.path());
+    online(&mut c);
+    let (o, out, err) = run(c.args(["models", "fetch", "da3-mono", "--models"]).arg(&weights_dir));
+    assert!(o.status.success(), "{err}");
+    let notice = err
+        .find("licence: Apache-2.0")
+        .unwrap_or_else(|| panic!("no licence notice: {err}"));
+    assert!(
+        err[..notice].contains("downloading `da3-mono`") && err.contains("1.4 GB"),
+        "{err}"
+    );
+    let snap =
+        weights_dir.join("models--depth-anything--DA3MONO-LARGE/snapshots/0123456789abcdef0123456789abcdef01234567");
+    assert_eq!(std::fs::read(snap.join("config.json")).unwrap(), config);
+    assert_eq!(std::fs::read(snap.join("model.safetensors")).unwrap(), weights);
+    assert!(out.contains(&snap.display().to_string()), "{out}");
+    let requests = log.lock().unwrap().len();
+    assert!(requests >= 2, "{:?}", log.lock().unwrap());
+    // Found again offline, and a second fetch asks nothing.
+    let (o, out, err) = run(pixl(t.path())
+        .args(["models", "path", "da3-mono", "--models"])
+        .arg(&weights_dir));
+    assert!(o.status.success(), "{err}");
+    assert_eq!(out.trim(), snap.display().to_string());
+    let mut c = pixl(t.path());
+    online(&mut c);
+    let (o, _, err) = run(c.args(["models", "fetch", "da3-mono", "--models"]).arg(&weights_dir));
+    assert!(o.status.success() && !err.contains("downloading"), "{err}");
+    assert_eq!(log.lock().unwrap().len(), requests);
+
+    // On first use by `estimate depth`, into the Hugging Face cache (HF_HOME).
+    let photo = tiny.join("input_b.png");
+    let depth = t.path().join("d.exr");
+    let mut c = pixl(t.path());
+    online(&mut c);
+    let (o, _, err) = run(c
+        .env("HF_HOME", t.path().join("hf"))
+        .args(["estimate", "depth"])
+        .arg(&photo)
+        .arg("-o")
+        .arg(&depth)
+        .args(["--model", "da3-mono", "--process-res", "98"]));
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("licence: Apache-2.0"), "{err}");
+    assert!(t
+        .path()
+        .join("hf/hub/models--depth-anything--DA3MONO-LARGE/refs/main")
+        .is_file());
+    assert!(depth.is_file());
+}

@@ -1,0 +1,120 @@
+//! Times the DA3 network (`Da3::forward`, f32, CPU) on random weights of the released
+//! architecture (`Da3Config::large()`: same shapes, same FLOPs as da3mono/metric-large).
+//!
+//! ```text
+//! RAYON_NUM_THREADS=8 cargo run --release -p pixl-estimate --example bench_da3 -- \
+//!     [--size 504x378] [--size 504x504] [--iters 5] [--warmup 1] [--tiny]
+//! ```
+//! Prints, per size, the median / min / max wall time of `--iters` forwards after `--warmup`
+//! untimed ones, then the process's peak resident memory (`VmHWM`). `--tiny` uses the test
+//! fixtures' tiny architecture instead (a smoke test of the harness).
+use candle_core::{DType, Device, Tensor};
+use pixl_estimate::da3::weights::expected_tensors;
+use pixl_estimate::da3::{Da3, Da3Config};
+use std::collections::HashMap;
+use std::time::Instant;
+
+struct Args {
+    sizes: Vec<(usize, usize)>,
+    iters: usize,
+    warmup: usize,
+    tiny: bool,
+}
+
+fn parse_args() -> Result<Args, String> {
+    let mut a = Args {
+        sizes: Vec::new(),
+        iters: 5,
+        warmup: 1,
+        tiny: false,
+    };
+    let mut it = std::env::args().skip(1);
+    while let Some(flag) = it.next() {
+        let mut value = || it.next().ok_or(format!("{flag} needs a value"));
+        match flag.as_str() {
+            "--size" => {
+                let v = value()?;
+                let (w, h) = v.split_once('x').ok_or(format!("--size {v}: expected WxH"))?;
+                let w: usize = w.parse().map_err(|_| format!("--size {v}: bad width"))?;
+                let h: usize = h.parse().map_err(|_| format!("--size {v}: bad height"))?;
+                if w == 0 || h == 0 || w % 14 != 0 || h % 14 != 0 {
+                    return Err(format!("--size {v}: sides must be positive multiples of 14"));
+                }
+                a.sizes.push((w, h));
+            }
+            "--iters" => a.iters = value()?.parse().map_err(|_| "--iters: expected a number")?,
+            "--warmup" => a.warmup = value()?.parse().map_err(|_| "--warmup: expected a number")?,
+            "--tiny" => a.tiny = true,
+            other => return Err(format!("unknown argument {other}")),
+        }
+    }
+    if a.sizes.is_empty() {
+        a.sizes = vec![(504, 378), (504, 504)];
+    }
+    if a.iters == 0 {
+        return Err("--iters must be at least 1".into());
+    }
+    Ok(a)
+}
+
+/// Every tensor of the checkpoint, random: N(0, 0.02²) weights, unit norm scales.
+fn random_weights(cfg: &Da3Config, dev: &Device) -> candle_core::Result<HashMap<String, Tensor>> {
+    expected_tensors(cfg)
+        .into_iter()
+        .map(|(name, shape)| {
+            let t = if name.ends_with("norm1.weight") || name.ends_with("norm2.weight") || name.ends_with("norm.weight")
+            {
+                Tensor::ones(shape, DType::F32, dev)?
+            } else {
+                Tensor::randn(0f32, 0.02, shape, dev)?
+            };
+            Ok((name, t))
+        })
+        .collect()
+}
+
+fn peak_rss_mib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args = parse_args().map_err(|e| format!("bench_da3: {e}"))?;
+    let dev = Device::Cpu;
+    let cfg = if args.tiny {
+        Da3Config::tiny()
+    } else {
+        Da3Config::large()
+    };
+    let t0 = Instant::now();
+    let vb = candle_nn::VarBuilder::from_tensors(random_weights(&cfg, &dev)?, DType::F32, &dev);
+    let model = Da3::from_var_builder(cfg, vb, &dev)?;
+    let threads = candle_core::utils::get_num_threads();
+    eprintln!("built in {:.1} s; {threads} threads", t0.elapsed().as_secs_f64());
+    for (w, h) in args.sizes {
+        let xs = Tensor::randn(0f32, 1.0, (1, 3, h, w), &dev)?;
+        for _ in 0..args.warmup {
+            model.forward(&xs)?;
+        }
+        let mut times: Vec<f64> = (0..args.iters)
+            .map(|_| {
+                let t = Instant::now();
+                model.forward(&xs).map(|_| t.elapsed().as_secs_f64() * 1e3)
+            })
+            .collect::<Result<_, _>>()?;
+        times.sort_by(|a, b| a.total_cmp(b));
+        println!(
+            "candle da3 forward {w}x{h}: median {:.0} ms (min {:.0}, max {:.0}, {} runs, {threads} threads)",
+            times[times.len() / 2],
+            times[0],
+            times[times.len() - 1],
+            times.len()
+        );
+    }
+    if let Some(p) = peak_rss_mib() {
+        println!("candle peak RSS {p:.0} MiB");
+    }
+    Ok(())
+}

@@ -1,0 +1,258 @@
+//! DA3's DINOv2 ViT backbone (`model.backbone.pretrained`, official
+//! `DinoVisionTransformer` as built by `DinoV2` for the single-view models).
+//!
+//! Input `(B, 3, H, W)` f32, ImageNet-normalised, `H`, `W` multiples of the patch size (14).
+//! Output: the four `out_layers` block outputs, each passed through the final `norm` with the
+//! class token dropped, as `(B, N, C)` tokens, `N = (H/14)·(W/14)` in row-major grid order —
+//! what the official `get_intermediate_layers` hands to the DPT head.
+//!
+//! Numerics as the official code:
+//! - patch embedding `Conv2d(3, C, 14, stride 14)` (computed as one matmul);
+//! - class token prepended, then the position embedding added: the stored `(1 + M², C)` table
+//!   (M = img_size / 14 = 37 for the released models) is used as is when the grid is M×M, and
+//!   otherwise its patch part is resized bicubically with scale factors
+//!   `((H/14 + 0.1) / M, (W/14 + 0.1) / M)` (`interpolate_offset` 0.1, no antialiasing), see
+//!   [`super::resize::bicubic_scale`];
+//! - pre-norm blocks `x + ls1·attn(norm1(x))`, `x + ls2·mlp(norm2(x))`: LayerNorm eps 1e-6,
+//!   multi-head softmax attention with scale `1/√(C/heads)`, biases on qkv / proj / fc, exact
+//!   (erf) GELU, LayerScale `gamma`;
+//! - final `norm`: `nn.LayerNorm(C)` with PyTorch's default eps **1e-5** (the blocks use 1e-6).
+//!
+//! Blocks after the last out layer do not change the outputs; they are not evaluated.
+use super::config::Da3Config;
+use super::fused::{add_scaled_rows, attention_qkv, bias_act_rows, Act, Vector};
+use super::resize::bicubic_scale;
+use candle_core::{DType, Module, Result, Tensor};
+use candle_nn::VarBuilder;
+use pixl_nn::LayerNorm;
+
+/// LayerNorm eps of the blocks (`Block(ln_eps=1e-6)`).
+pub const BLOCK_LN_EPS: f64 = 1e-6;
+/// LayerNorm eps of the final norm (`nn.LayerNorm` default).
+pub const FINAL_LN_EPS: f64 = 1e-5;
+/// `DinoVisionTransformer.interpolate_offset`.
+pub const INTERPOLATE_OFFSET: f64 = 0.1;
+
+/// `nn.Linear` (`weight` `(out, in)`, `bias`) with a fused bias + activation.
+#[derive(Clone, Debug)]
+struct Dense {
+    weight: Tensor,
+    bias: Vector,
+}
+
+impl Dense {
+    fn new(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<Self> {
+        Ok(Self {
+            weight: vb.get((out_dim, in_dim), "weight")?,
+            bias: Vector::new(vb.get(out_dim, "bias")?)?,
+        })
+    }
+
+    /// `act(xs·Wᵀ + b)` on `(…, in)`.
+    fn forward(&self, xs: &Tensor, act: Act) -> Result<Tensor> {
+        let dims = xs.dims().to_vec();
+        let (lead, in_dim) = dims.split_at(dims.len() - 1);
+        let rows: usize = lead.iter().product();
+        let ys = xs.reshape((rows, in_dim[0]))?.matmul(&self.weight.t()?)?;
+        let ys = bias_act_rows(&ys, &self.bias, act)?;
+        let mut shape = lead.to_vec();
+        shape.push(self.bias.len());
+        ys.reshape(shape)
+    }
+}
+
+/// Multi-head self-attention with a fused `qkv` projection.
+#[derive(Clone, Debug)]
+struct Attention {
+    qkv: Dense,
+    proj: Dense,
+    heads: usize,
+}
+
+impl Attention {
+    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let qkv = self.qkv.forward(xs, Act::None)?; // (B, N, 3C)
+        self.proj.forward(&attention_qkv(&qkv, self.heads)?, Act::None)
+    }
+}
+
+/// `Linear – GELU(erf) – Linear`.
+#[derive(Clone, Debug)]
+struct Mlp {
+    fc1: Dense,
+    fc2: Dense,
+}
+
+impl Mlp {
+    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        self.fc2.forward(&self.fc1.forward(xs, Act::Gelu)?, Act::None)
+    }
+}
+
+/// Pre-norm transformer block with LayerScale.
+#[derive(Clone, Debug)]
+struct Block {
+    norm1: LayerNorm,
+    attn: Attention,
+    ls1: Vector,
+    norm2: LayerNorm,
+    mlp: Mlp,
+    ls2: Vector,
+}
+
+impl Block {
+    fn new(cfg: &Da3Config, vb: VarBuilder) -> Result<Self> {
+        let c = cfg.net().embed_dim;
+        let hidden = cfg.mlp_hidden();
+        Ok(Self {
+            norm1: LayerNorm::new(c, BLOCK_LN_EPS, vb.pp("norm1"))?,
+            attn: Attention {
+                qkv: Dense::new(c, 3 * c, vb.pp("attn").pp("qkv"))?,
+                proj: Dense::new(c, c, vb.pp("attn").pp("proj"))?,
+                heads: cfg.net().num_heads,
+            },
+            ls1: Vector::new(vb.pp("ls1").get(c, "gamma")?)?,
+            norm2: LayerNorm::new(c, BLOCK_LN_EPS, vb.pp("norm2"))?,
+            mlp: Mlp {
+                fc1: Dense::new(c, hidden, vb.pp("mlp").pp("fc1"))?,
+                fc2: Dense::new(hidden, c, vb.pp("mlp").pp("fc2"))?,
+            },
+            ls2: Vector::new(vb.pp("ls2").get(c, "gamma")?)?,
+        })
+    }
+
+    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let a = self.attn.forward(&self.norm1.forward(xs)?)?;
+        let xs = add_scaled_rows(xs, &a, &self.ls1)?;
+        let m = self.mlp.forward(&self.norm2.forward(&xs)?)?;
+        add_scaled_rows(&xs, &m, &self.ls2)
+    }
+}
+
+/// The ViT backbone.
+#[derive(Clone, Debug)]
+pub struct Backbone {
+    /// Patch-embedding weight as a `(3·p·p, C)` matrix (rows in `(channel, dy, dx)` order).
+    patch_w: Tensor,
+    patch_b: Vector,
+    cls_token: Tensor,
+    pos_embed: Tensor,
+    blocks: Vec<Block>,
+    norm: LayerNorm,
+    out_layers: [usize; 4],
+    patch: usize,
+    pos_grid: usize,
+    dim: usize,
+}
+
+impl Backbone {
+    /// Reads `model.backbone.pretrained.*` under `vb` (already prefixed).
+    pub fn new(cfg: &Da3Config, vb: VarBuilder) -> Result<Self> {
+        let n = cfg.net();
+        let (c, p, g) = (n.embed_dim, n.patch_size, cfg.pos_grid());
+        let proj = vb.pp("patch_embed").pp("proj");
+        let patch_w = proj
+            .get((c, 3, p, p), "weight")?
+            .reshape((c, 3 * p * p))?
+            .t()?
+            .contiguous()?;
+        let patch_b = Vector::new(proj.get(c, "bias")?)?;
+        let last = n.out_layers.iter().copied().max().unwrap_or(0);
+        let blocks = (0..=last)
+            .map(|i| Block::new(cfg, vb.pp("blocks").pp(i)))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            patch_w,
+            patch_b,
+            cls_token: vb.get((1, 1, c), "cls_token")?,
+            pos_embed: vb.get((1, g * g + 1, c), "pos_embed")?,
+            blocks,
+            norm: LayerNorm::new(c, FINAL_LN_EPS, vb.pp("norm"))?,
+            out_layers: n.out_layers,
+            patch: p,
+            pos_grid: g,
+            dim: c,
+        })
+    }
+
+    /// Patch size.
+    pub fn patch(&self) -> usize {
+        self.patch
+    }
+
+    /// `(B, 3, H, W)` → `(B, N, C)` patch tokens (no class token, no position embedding).
+    fn patch_embed(&self, xs: &Tensor) -> Result<Tensor> {
+        let (b, c, h, w) = xs.dims4()?;
+        let p = self.patch;
+        let (gh, gw) = (h / p, w / p);
+        let rows = xs
+            .reshape((b, c, gh, p, gw, p))?
+            .permute((0, 2, 4, 1, 3, 5))?
+            .contiguous()?
+            .reshape((b * gh * gw, c * p * p))?;
+        bias_act_rows(&rows.matmul(&self.patch_w)?, &self.patch_b, Act::None)?.reshape((b, gh * gw, self.dim))
+    }
+
+    /// The position embedding for a `(gh, gw)` grid, `(1, 1 + gh·gw, C)`, as
+    /// `interpolate_pos_encoding`.
+    pub fn pos_embed_for(&self, gh: usize, gw: usize) -> Result<Tensor> {
+        let g = self.pos_grid;
+        if gh == g && gw == g {
+            return Ok(self.pos_embed.clone());
+        }
+        let c = self.dim;
+        let cls = self.pos_embed.narrow(1, 0, 1)?;
+        let grid = self
+            .pos_embed
+            .narrow(1, 1, g * g)?
+            .reshape((g * g, c))?
+            .t()?
+            .contiguous()?; // (C, g²)
+        let data = grid.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+        let sy = (gh as f64 + INTERPOLATE_OFFSET) / g as f64;
+        let sx = (gw as f64 + INTERPOLATE_OFFSET) / g as f64;
+        let (out, oh, ow) = bicubic_scale(&data, c, g, g, sy, sx);
+        if (oh, ow) != (gh, gw) {
+            candle_core::bail!("position embedding resized to {oh}x{ow}, expected {gh}x{gw}");
+        }
+        let patch = Tensor::from_vec(out, (c, gh * gw), self.pos_embed.device())?
+            .t()?
+            .unsqueeze(0)?
+            .to_dtype(self.pos_embed.dtype())?;
+        Tensor::cat(&[&cls, &patch], 1)
+    }
+
+    /// Tokens entering block 0: `[cls; patches] + pos`, `(B, 1 + N, C)`.
+    pub fn embed(&self, xs: &Tensor) -> Result<Tensor> {
+        let (b, _, h, w) = xs.dims4()?;
+        let (gh, gw) = (h / self.patch, w / self.patch);
+        let patches = self.patch_embed(xs)?;
+        let cls = self.cls_token.broadcast_as((b, 1, self.dim))?;
+        Tensor::cat(&[&cls, &patches], 1)?.broadcast_add(&self.pos_embed_for(gh, gw)?)
+    }
+
+    /// The four normalised out-layer features, each `(B, N, C)` (class token dropped).
+    pub fn forward_features(&self, xs: &Tensor) -> Result<Vec<Tensor>> {
+        let (_, c, h, w) = xs.dims4()?;
+        if c != 3 {
+            candle_core::bail!("DA3 backbone: expected a (B, 3, H, W) input, got {c} channels");
+        }
+        if h % self.patch != 0 || w % self.patch != 0 || h == 0 || w == 0 {
+            candle_core::bail!(
+                "DA3 backbone: input {w}x{h} is not a multiple of the patch size {}",
+                self.patch
+            );
+        }
+        let mut xs = self.embed(xs)?;
+        // As the official `blocks_to_take`: outputs in block order.
+        let mut feats = Vec::with_capacity(4);
+        for (i, block) in self.blocks.iter().enumerate() {
+            xs = block.forward(&xs)?;
+            if self.out_layers.contains(&i) {
+                let n = xs.dim(1)? - 1;
+                feats.push(self.norm.forward(&xs.narrow(1, 1, n)?)?);
+            }
+        }
+        Ok(feats)
+    }
+}

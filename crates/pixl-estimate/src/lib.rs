@@ -1,0 +1,11 @@
+//! `pixl-estimate`: the pretrained estimators of the paper's inference pipeline (§3.4), ported to
+//! candle and loading their official checkpoints unchanged.
+//!
+//! - [`da3`] — Depth Anything 3, monocular and metric single-image depth (+ sky mask).
+//! - [`hub`] — where model weights come from: `--models DIR`, the Hugging Face cache, a download.
+//! - [`error`] — the typed error of this crate ([`EstimateError`]).
+pub mod da3;
+pub mod error;
+pub mod hub;
+
+pub use error::EstimateError;
