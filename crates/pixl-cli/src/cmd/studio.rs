@@ -1,0 +1,143 @@
+//! `pixl studio`: a local web page to place lights on a photo and watch it relight. A thin
+//! wrapper over `pixl_studio`: it reads the flags, opens the photo or scene file, binds the
+//! address (loopback unless `--host` says otherwise, with a warning), prints the URL and serves
+//! until interrupted.
+use crate::Ctx;
+use anyhow::{bail, Context, Result};
+use pixl_studio::{Studio, StudioConfig};
+use std::path::PathBuf;
+
+#[derive(clap::Args, Debug)]
+#[command(
+    after_help = "Examples:\n  pixl studio photo.jpg\n  pixl studio photo.jpg --depth depth.exr --open\n  \
+pixl studio assets/demo/scene.toml --port 8080\n  pixl studio --weights W.safetensors --out my-lights/\n\n\
+Opens http://127.0.0.1:PORT/ (printed). Click the photo to place a light, drag it, pick a preset; the\n\
+quick preview follows at once, the path-traced render and the relit photo when you stop. Without a\n\
+depth map the geometry is a labelled stand-in (a ground plane and a backdrop). The JSON API behind\n\
+the page is documented in crates/pixl-studio/README.md."
+)]
+pub struct Args {
+    /// A photo (.png, .jpg) or a scene file (.toml, .json) to open; or drop one on the page.
+    pub input: Option<PathBuf>,
+    /// A depth map of the photo (.exr, 16-bit .png, .npy).
+    #[arg(long)]
+    pub depth: Option<PathBuf>,
+    /// What the depth map holds: metric (metres), relative, or disparity.
+    #[arg(long, default_value = "metric")]
+    pub depth_kind: String,
+    /// Port (0: any free port).
+    #[arg(long, default_value_t = 8765)]
+    pub port: u16,
+    /// Address to listen on. Default 127.0.0.1 (this machine only); anything else exposes the
+    /// session, and the files it can write, to the network.
+    #[arg(long, default_value = "127.0.0.1")]
+    pub host: String,
+    /// Network weights (default: the bundled demo weights).
+    #[arg(long)]
+    pub weights: Option<PathBuf>,
+    /// Where "save scene" and the exports write.
+    #[arg(long, default_value = "studio-out")]
+    pub out: PathBuf,
+    /// Long side of the working size (render and network).
+    #[arg(long, default_value_t = 512)]
+    pub size: usize,
+    /// Vertical field of view assumed for the photo, degrees.
+    #[arg(long, default_value_t = 50.0)]
+    pub fov: f32,
+    /// Samples per pixel of the final render stage.
+    #[arg(long, default_value_t = 16)]
+    pub spp: u32,
+    /// Open the page in the default browser.
+    #[arg(long)]
+    pub open: bool,
+}
+
+pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
+    let depth_kind = pixl_studio::DepthKind::parse(&args.depth_kind)
+        .with_context(|| format!("--depth-kind {:?}: give metric, relative or disparity", args.depth_kind))?;
+    if args.depth.is_some() && args.input.is_none() {
+        bail!("--depth needs a photo");
+    }
+    if !(args.fov.is_finite() && args.fov > 1.0 && args.fov < 179.0) {
+        bail!("--fov {} must be between 1 and 179 degrees", args.fov);
+    }
+    if args.size < 16 || args.size > 4096 {
+        bail!("--size {} must be between 16 and 4096", args.size);
+    }
+    let config = StudioConfig {
+        work_side: args.size,
+        stages: vec![
+            pixl_studio::Stage {
+                side: (args.size / 2).max(16),
+                spp: 4.min(args.spp.max(1)),
+            },
+            pixl_studio::Stage {
+                side: args.size,
+                spp: args.spp.max(1),
+            },
+        ],
+        fov_y_deg: args.fov,
+        weights: args.weights.clone(),
+        out_dir: args.out.clone(),
+        ..StudioConfig::default()
+    };
+    let studio = Studio::new(config).context("starting the studio")?;
+    if let Some(input) = &args.input {
+        let ext = pixl_core::io::extension(input);
+        if ext == "toml" || ext == "json" {
+            studio
+                .open_scene_file(input)
+                .with_context(|| format!("opening {}", input.display()))?;
+        } else {
+            studio
+                .load_photo_file(input)
+                .with_context(|| format!("opening {}", input.display()))?;
+            if let Some(d) = &args.depth {
+                let bytes = std::fs::read(d).with_context(|| format!("reading {}", d.display()))?;
+                let name = d
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                studio
+                    .load_depth_bytes(&bytes, &name, depth_kind)
+                    .with_context(|| format!("using the depth map {}", d.display()))?;
+            }
+        }
+    }
+    let loopback = matches!(args.host.as_str(), "127.0.0.1" | "localhost" | "::1");
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .worker_threads(2)
+        .build()
+        .context("starting the async runtime")?;
+    rt.block_on(async {
+        let addr = (args.host.as_str(), args.port);
+        let listener = tokio::net::TcpListener::bind(addr)
+            .await
+            .with_context(|| format!("cannot listen on {}:{}", args.host, args.port))?;
+        let local = listener.local_addr()?;
+        if !loopback {
+            eprintln!(
+                "warning: listening on {local}: anyone who can reach this address can use the session and make it \
+                 write files to {}",
+                args.out.display()
+            );
+        }
+        let host = if local.ip().is_unspecified() {
+            "127.0.0.1".to_string()
+        } else {
+            local.ip().to_string()
+        };
+        let host = if host.contains(':') { format!("[{host}]") } else { host };
+        let url = format!("http://{host}:{}/", local.port());
+        // The URL is the command's output: printed even with --quiet.
+        println!("{url}");
+        ctx.say("pixl studio is running; press Ctrl+C to stop");
+        if args.open {
+            if let Err(e) = std::process::Command::new("xdg-open").arg(&url).spawn() {
+                tracing::warn!("could not open a browser ({e}); open {url} yourself");
+            }
+        }
+        pixl_studio::serve(studio, listener).await.context("serving")
+    })
+}
