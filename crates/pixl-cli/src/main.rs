@@ -1,7 +1,8 @@
 //! `pixl`: the one binary of pixlrelight. A thin layer over the library crates: it parses flags,
 //! turns them into library calls, and reports errors with `anyhow` at this edge only.
 //!
-//! Exit codes: 0 success, 1 error (message on stderr), 2 bad command line (from clap).
+//! Exit codes: 0 success, 1 error (message on stderr), 2 bad command line (from clap), 130
+//! interrupted (SIGINT / SIGTERM / SIGHUP; temporary files removed, see `ctx`).
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -35,7 +36,7 @@ struct Cli {
 enum Command {
     /// Run the whole pipeline on the bundled example scene and write an HTML report.
     Demo(cmd::demo::Args),
-    /// Relight a photograph given its target intrinsics C_T.
+    /// Relight a photograph: from the photo and new lights in one command, or given its C_T.
     Relight(cmd::relight::Args),
     /// Create or inspect network weights.
     #[command(subcommand)]
@@ -50,13 +51,16 @@ enum Command {
     Intrinsics(cmd::intrinsics::Command),
     /// Draw corrupted variants of a C_T (paper App. C) as a contact sheet.
     Augment(cmd::augment::Args),
-    /// Build a scene (mesh, textures, scene.toml) from a photo and its depth map.
+    /// Build a scene (mesh, textures, scene.toml) from a photo and its depth map (estimated if not given).
     Reconstruct(cmd::reconstruct::Args),
     /// Path-trace a scene into Cycles-equivalent render passes.
     Render(cmd::render::Args),
     /// Add lights to a scene file.
     #[command(subcommand)]
     Light(cmd::light::Command),
+    /// Inspect scene files (bounds, camera, axes, lights).
+    #[command(subcommand)]
+    Scene(cmd::scene::Command),
     /// Bridge to Blender (export a scene as a Blender Python script).
     #[command(subcommand)]
     Blender(cmd::blender::Command),
@@ -66,16 +70,42 @@ enum Command {
     Train(cmd::train::Args),
     /// Evaluate a model and baselines (PSNR / SSIM / LPIPS, timing).
     Eval(cmd::eval::Args),
+    /// Pretrained estimators' weights: list them, fetch them once, show where they are.
+    #[command(
+        subcommand,
+        after_help = "Examples:\n  pixl models list\n  pixl models fetch da3-metric\n  pixl models path da3-metric --json\n\n\
+Lookup: --models DIR (or PIXL_MODELS_DIR), then the Hugging Face cache (HF_HUB_CACHE, HF_HOME/hub, \
+~/.cache/huggingface/hub), then a download; --offline (PIXL_OFFLINE=1, HF_HUB_OFFLINE=1) never downloads."
+    )]
+    Models(cmd::models::Command),
+    /// Estimate maps from a photo with pretrained estimators (depth: Depth Anything 3).
+    #[command(
+        subcommand,
+        after_help = "Example:\n  pixl estimate depth photo.jpg -o depth.exr --preview depth.png"
+    )]
+    Estimate(cmd::estimate::Command),
+    /// Place lights on a photo in the browser and watch it relight (a local web page).
+    Studio(cmd::studio::Args),
+    /// Print a shell completion script (bash, zsh, fish, elvish, powershell) on stdout.
+    #[command(
+        after_help = "Examples:\n  pixl completions bash > ~/.local/share/bash-completion/completions/pixl\n  \
+pixl completions zsh > ~/.zfunc/_pixl\n  pixl completions fish > ~/.config/fish/completions/pixl.fish"
+    )]
+    Completions {
+        /// The shell.
+        shell: clap_complete::Shell,
+    },
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    ctx::install_signal_handler();
     init_logging(cli.quiet);
-    let ctx = Ctx { quiet: cli.quiet };
+    let ctx = Ctx::new(cli.quiet);
     match run(cli.command, &ctx) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", ctx::error_text(&e));
             ExitCode::FAILURE
         }
     }
@@ -93,10 +123,19 @@ fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
         Command::Reconstruct(a) => cmd::reconstruct::run(a, ctx),
         Command::Render(a) => cmd::render::run(a, ctx),
         Command::Light(c) => cmd::light::run(c, ctx),
+        Command::Scene(c) => cmd::scene::run(c, ctx),
         Command::Blender(c) => cmd::blender::run(c, ctx),
         Command::Synth(a) => cmd::synth::run(a, ctx),
         Command::Train(a) => cmd::train::run(a, ctx),
         Command::Eval(a) => cmd::eval::run(a, ctx),
+        Command::Models(c) => cmd::models::run(c, ctx),
+        Command::Estimate(c) => cmd::estimate::run(c, ctx),
+        Command::Studio(a) => cmd::studio::run(a, ctx),
+        Command::Completions { shell } => {
+            use clap::CommandFactory;
+            clap_complete::generate(shell, &mut Cli::command(), "pixl", &mut std::io::stdout());
+            Ok(())
+        }
     }
 }
 
@@ -107,6 +146,7 @@ fn init_logging(quiet: bool) {
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(ctx::color_enabled())
         .with_target(false)
         .without_time()
         .try_init();

@@ -97,7 +97,10 @@ fn expect_failure(args: &[&str], needles: &[&str], out: &Path) {
         if let Ok(rd) = std::fs::read_dir(dir) {
             for e in rd.flatten() {
                 let n = e.file_name().to_string_lossy().to_string();
-                assert!(!n.contains(".tmp-"), "temporary file left behind: {n}");
+                assert!(
+                    !n.contains(".tmp-") && !n.contains(".pixl-probe-"),
+                    "temporary file left behind: {n}"
+                );
             }
         }
     }

@@ -21,6 +21,15 @@ fn demo_writes_a_complete_report() {
         "warm-interior-sun",
     ];
     assert_eq!(html.matches("<section class=\"row\">").count(), presets.len());
+    // The plain-language introduction, the two summary tables (a row per preset, one bold best
+    // value each) and the full-size overlay come before / after the image rows.
+    assert!(html.contains("<p class=\"intro\">What you see:"), "intro");
+    assert_eq!(html.matches("<table class=\"summary\">").count(), 2);
+    for p in presets {
+        assert_eq!(html.matches(&format!("<tr><td>{p}</td>")).count(), 2, "{p} rows");
+    }
+    assert_eq!(html.matches("<td><b>").count(), 2 * presets.len(), "one best per row");
+    assert!(html.contains("<div id=\"zoom\">") && html.contains("addEventListener('click'"));
     let panels = [
         "source",
         "path-traced render",

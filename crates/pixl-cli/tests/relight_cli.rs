@@ -1,5 +1,8 @@
 //! `pixl model` / `pixl relight` / `pixl bench model` through the real binary: fresh weights
-//! return the source exactly (16-bit PNG and f32 EXR, odd size), `model info` totals.
+//! return the source exactly (16-bit PNG and f32 EXR, odd size; and a photo larger than
+//! `--max-side`, relit at the working size and applied at full size, with its planned memory
+//! bounded), an output that is an input is refused, an impossible size is refused with its
+//! figure, `model info` totals.
 use pixl_core::Image;
 use pixl_intrinsics::ct::{write_ct, Ct};
 use std::path::Path;
@@ -94,4 +97,242 @@ fn bench_rejects_a_bad_size() {
     let o = pixl(&["bench", "model", "--config", "tiny", "--size", "512by512"]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("WIDTHxHEIGHT"));
+}
+
+fn fresh_weights(dir: &Path) -> std::path::PathBuf {
+    let w = dir.join("w.safetensors");
+    ok(&["model", "init", "--config", "tiny", "--seed", "3", "-o", s(&w)]);
+    w
+}
+
+fn smooth_ct(w: usize, h: usize) -> Ct {
+    Ct::new(
+        Image::from_fn(w, h, 3, |x, _, c| 0.2 + 0.1 * c as f32 + 0.3 * x as f32 / w as f32),
+        Image::from_fn(w, h, 3, |_, y, _| 0.5 + 0.4 * y as f32 / h as f32),
+        Image::from_fn(w, h, 3, |x, y, _| 0.01 * ((x + y) % 3) as f32),
+    )
+    .unwrap()
+}
+
+/// A 1500 x 1000 photo with `--max-side 128`: the network runs at 128 x 85, the output has the
+/// photo's size and (fresh weights, g = b = 0) equals it exactly, and the planned memory is
+/// under 30 MB for the network (200 MB with the full-size images), a twentieth of what the
+/// network would plan at full size.
+#[test]
+fn a_photo_larger_than_max_side_relights_at_full_size_with_bounded_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = fresh_weights(dir.path());
+    let (w, h) = (1500, 1000);
+    let photo = Image::from_fn(w, h, 3, |x, y, c| ((x * 31 + y * 17 + c * 7) % 65536) as f32 / 65535.0);
+    let src = dir.path().join("big.png");
+    pixl_core::io::write_image(&src, &photo).unwrap();
+    // C_T at the photo's size: area-averaged to the working size.
+    let ct_path = dir.path().join("ct.exr");
+    write_ct(&ct_path, &smooth_ct(w, h)).unwrap();
+    let out = dir.path().join("relit.png");
+    let json = ok(&[
+        "relight",
+        "--source",
+        s(&src),
+        "--intrinsics",
+        s(&ct_path),
+        "--weights",
+        s(&weights),
+        "--max-side",
+        "128",
+        "-o",
+        s(&out),
+        "--json",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!((v["width"].as_u64(), v["height"].as_u64()), (Some(1500), Some(1000)));
+    assert_eq!(
+        (v["working_width"].as_u64(), v["working_height"].as_u64()),
+        (Some(128), Some(85))
+    );
+    // The network at the working size; the full-size photo, output and C_T (92 bytes a pixel).
+    let network = v["planned_network_bytes"].as_u64().unwrap();
+    let planned = network + v["planned_full_size_bytes"].as_u64().unwrap();
+    assert!(
+        network < 30_000_000 && planned < 200_000_000,
+        "planned {network} + full size = {planned} bytes"
+    );
+    let at_full = pixl_model::fullres::plan_memory(&pixl_model::Config::tiny(), candle_core::DType::F32, w, h);
+    assert!(
+        at_full.peak_bytes() > 20 * network,
+        "full size would plan {}",
+        at_full.peak_bytes()
+    );
+    let back = pixl_core::io::read_rgb(&out).unwrap();
+    assert_eq!((back.width, back.height), (w, h));
+    let stored = pixl_core::io::read_rgb(&src).unwrap();
+    assert!(back
+        .data
+        .iter()
+        .zip(&stored.data)
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
+
+    // A C_T at the working size is used as it is; any other size is refused, naming both.
+    write_ct(&ct_path, &smooth_ct(128, 85)).unwrap();
+    ok(&[
+        "relight",
+        "--source",
+        s(&src),
+        "--intrinsics",
+        s(&ct_path),
+        "--weights",
+        s(&weights),
+        "--max-side",
+        "128",
+        "-o",
+        s(&out),
+    ]);
+    write_ct(&ct_path, &smooth_ct(100, 85)).unwrap();
+    let o = pixl(&[
+        "relight",
+        "--source",
+        s(&src),
+        "--intrinsics",
+        s(&ct_path),
+        "--weights",
+        s(&weights),
+        "--max-side",
+        "128",
+        "-o",
+        s(&out),
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("1500x1000") && err.contains("128x85"), "{err}");
+}
+
+/// `--out` naming the source (directly, or through another spelling of the path) is refused
+/// before any work, and the source is left as it was.
+#[test]
+fn output_equal_to_the_source_is_refused_and_nothing_is_overwritten() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = fresh_weights(dir.path());
+    let src = dir.path().join("a.png");
+    pixl_core::io::write_image(&src, &Image::from_fn(20, 12, 3, |x, _, _| x as f32 / 20.0)).unwrap();
+    let ct_path = dir.path().join("ct.exr");
+    write_ct(&ct_path, &smooth_ct(20, 12)).unwrap();
+    let before = std::fs::read(&src).unwrap();
+    let sub = dir.path().join("sub");
+    std::fs::create_dir(&sub).unwrap();
+    let roundabout = sub.join("..").join("a.png");
+    for out in [src.clone(), roundabout] {
+        for form in [
+            vec![
+                "relight",
+                "--source",
+                s(&src),
+                "--intrinsics",
+                s(&ct_path),
+                "--weights",
+                s(&weights),
+                "--out",
+                s(&out),
+            ],
+            vec![
+                "relight",
+                s(&src),
+                "--preset",
+                "warm-overhead-flash",
+                "--depth",
+                s(&ct_path),
+                "-o",
+                s(&out),
+            ],
+        ] {
+            let o = pixl(&form);
+            assert_eq!(o.status.code(), Some(1), "{form:?}");
+            let err = String::from_utf8_lossy(&o.stderr);
+            assert!(err.contains("input"), "{form:?}: {err}");
+            assert_eq!(std::fs::read(&src).unwrap(), before, "the source was changed");
+        }
+    }
+    // The C_T, the weights: inputs too.
+    let o = pixl(&[
+        "relight",
+        "--source",
+        s(&src),
+        "--intrinsics",
+        s(&ct_path),
+        "--weights",
+        s(&weights),
+        "--out",
+        s(&weights),
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    // An output format the extension does not name, and a missing folder, are refused first.
+    for bad in ["relit.txt", "no/such/dir/relit.png"] {
+        let out = dir.path().join(bad);
+        let o = pixl(&[
+            "relight",
+            "--source",
+            s(&src),
+            "--intrinsics",
+            s(&ct_path),
+            "--weights",
+            s(&weights),
+            "--out",
+            s(&out),
+        ]);
+        assert_eq!(o.status.code(), Some(1), "{bad}");
+        assert!(!out.exists());
+    }
+}
+
+/// A working size whose planned memory exceeds `--max-memory` is refused before any work, with
+/// the figure and the flag to change.
+#[test]
+fn an_impossible_request_is_refused_with_its_figure_and_the_flag_to_change() {
+    let dir = tempfile::tempdir().unwrap();
+    let weights = fresh_weights(dir.path());
+    let src = dir.path().join("a.png");
+    pixl_core::io::write_image(&src, &Image::from_fn(640, 480, 3, |_, _, _| 0.5)).unwrap();
+    let ct_path = dir.path().join("ct.exr");
+    write_ct(&ct_path, &smooth_ct(640, 480)).unwrap();
+    let out = dir.path().join("relit.png");
+    let o = pixl(&[
+        "relight",
+        "--source",
+        s(&src),
+        "--intrinsics",
+        s(&ct_path),
+        "--weights",
+        s(&weights),
+        "--out",
+        s(&out),
+        "--max-memory",
+        "0.05",
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("GB") && err.contains("--max-side") && err.contains("640x480"),
+        "{err}"
+    );
+    assert!(!out.exists());
+    // The --max-side it suggests does fit.
+    let side = err
+        .split("--max-side ")
+        .filter_map(|t| t.split(|c: char| !c.is_ascii_digit()).next()?.parse::<u32>().ok())
+        .find(|s| *s < 1024)
+        .expect("a suggested --max-side");
+    ok(&[
+        "relight",
+        "--source",
+        s(&src),
+        "--intrinsics",
+        s(&ct_path),
+        "--weights",
+        s(&weights),
+        "--out",
+        s(&out),
+        "--max-memory",
+        "0.05",
+        "--max-side",
+        &side.to_string(),
+    ]);
 }

@@ -7,7 +7,8 @@
 //! name already carries it. All parts must share one size. The header is checked against
 //! [`crate::io::MAX_PIXELS`] before any pixel is allocated.
 //!
-//! Writing produces one single-part file with f32 samples, ZIP-compressed, atomically.
+//! Writing produces one single-part file with f32 samples, ZIP-compressed, atomically, and only
+//! to a path ending in `.exr`.
 use crate::error::{CoreError, Result};
 use crate::io::{atomic_write, check_size};
 use std::path::Path;
@@ -148,9 +149,15 @@ fn exr_image(
     exr::image::Image::from_layer(layer)
 }
 
-/// Writes all channels into one single-part f32 EXR, atomically.
+/// Writes all channels into one single-part f32 EXR, atomically. The path must end in `.exr`.
 pub fn write_exr_channels(path: &Path, img: &ExrChannels) -> Result<()> {
     use exr::prelude::*;
+    if crate::io::extension(path) != "exr" {
+        return Err(CoreError::OutputExtension {
+            path: path.to_owned(),
+            expected: ".exr".into(),
+        });
+    }
     if img.width == 0 || img.height == 0 {
         return Err(CoreError::Empty {
             path: path.to_owned(),

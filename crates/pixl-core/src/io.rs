@@ -6,12 +6,15 @@
 //! - Before decoding, the header's size is checked: empty images and anything over
 //!   [`MAX_PIXELS`] are refused without allocating.
 //! - Every write is atomic ([`atomic_write`]): a temporary file beside the target, fsync, rename.
-//!   A failure leaves no partial file behind.
+//!   A failure, or an interrupting signal (see [`crate::output`]), leaves no partial file behind.
+//! - The extension decides the format: [`write_image`] dispatches on it, and [`write_png`] (and
+//!   [`crate::exrio::write_exr_channels`]) refuse a path whose extension is not theirs, so no
+//!   file ever holds bytes of another format than its name says.
 use crate::error::{CoreError, Result};
 use crate::exrio::{read_exr_channels, write_exr_channels, ExrChannels};
 use crate::image::Image;
 use std::fs::File;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Largest image accepted, in pixels (8192 × 8192).
 pub const MAX_PIXELS: usize = 8192 * 8192;
@@ -45,32 +48,44 @@ pub fn extension(path: &Path) -> String {
 }
 
 /// Writes `path` atomically: `write` fills a temporary file in the same directory, which is
-/// then fsynced and renamed over `path`. On any error the temporary file is removed.
+/// then fsynced and renamed over `path`. On any error the temporary file is removed; while it
+/// exists it is registered with [`crate::output`], so an interrupting signal removes it too (and
+/// a file being replaced keeps its old content).
 pub fn atomic_write(path: &Path, write: impl FnOnce(&mut File) -> Result<()>) -> Result<()> {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_owned(),
-        _ => PathBuf::from("."),
-    };
+    let dir = crate::output::parent_dir(path);
     if !dir.is_dir() {
-        return Err(CoreError::Io {
+        return Err(CoreError::Output {
             path: path.to_owned(),
-            source: std::io::Error::new(
-                std::io::ErrorKind::NotFound,
-                format!("output directory {} does not exist", dir.display()),
-            ),
+            reason: if dir.exists() {
+                format!("{} is not a folder", dir.display())
+            } else {
+                format!("the output folder {} does not exist", dir.display())
+            },
+        });
+    }
+    if path.is_dir() {
+        return Err(CoreError::Output {
+            path: path.to_owned(),
+            reason: "is a folder; give a file name".into(),
         });
     }
     static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
     let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("out");
     let tmp = dir.join(format!(".{name}.tmp-{}-{n}", std::process::id()));
+    let live = crate::output::register(&tmp, false);
     let result = (|| {
         let mut file = File::create(&tmp).map_err(|e| CoreError::io(path, e))?;
+        if let Some(pause) = crate::output::test_write_delay() {
+            std::thread::sleep(pause);
+        }
         write(&mut file)?;
         file.sync_all().map_err(|e| CoreError::io(path, e))?;
         drop(file);
-        std::fs::rename(&tmp, path).map_err(|e| CoreError::io(path, e))
+        Ok(())
     })();
+    let result = result
+        .and_then(|()| crate::output::commit(live, || std::fs::rename(&tmp, path)).map_err(|e| CoreError::io(path, e)));
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
@@ -277,8 +292,14 @@ fn check_writable(path: &Path, img: &Image) -> Result<()> {
     Ok(())
 }
 
-/// Writes a PNG (values clamped to [0, 1], rounded to nearest).
+/// Writes a PNG (values clamped to [0, 1], rounded to nearest). The path must end in `.png`.
 pub fn write_png(path: &Path, img: &Image, depth: PngDepth) -> Result<()> {
+    if extension(path) != "png" {
+        return Err(CoreError::OutputExtension {
+            path: path.to_owned(),
+            expected: ".png".into(),
+        });
+    }
     check_writable(path, img)?;
     let (w, h) = (img.width as u32, img.height as u32);
     let color = match (img.channels, depth) {
@@ -402,5 +423,53 @@ mod tests {
         let r = atomic_write(&p, |_| Err(CoreError::Invalid("boom".into())));
         assert!(r.is_err());
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+
+    #[test]
+    fn the_extension_decides_the_format() {
+        let dir = tempfile::tempdir().unwrap();
+        let img = Image::new(4, 3, 3);
+        let e = write_png(&dir.path().join("p.jpg"), &img, PngDepth::Eight).unwrap_err();
+        assert!(e.to_string().contains("must end in .png"), "{e}");
+        let ch = crate::exrio::ExrChannels {
+            width: 4,
+            height: 3,
+            channels: vec![("Y".into(), vec![0.0; 12])],
+        };
+        let e = crate::exrio::write_exr_channels(&dir.path().join("x.png"), &ch).unwrap_err();
+        assert!(e.to_string().contains("must end in .exr"), "{e}");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+        // A JPEG written by extension is a JPEG (SOI marker), a PNG a PNG.
+        for (name, magic) in [("a.jpg", &b"\xff\xd8"[..]), ("a.png", &b"\x89PNG"[..])] {
+            let p = dir.path().join(name);
+            write_image(&p, &img).unwrap();
+            assert!(std::fs::read(&p).unwrap().starts_with(magic), "{name}");
+        }
+    }
+
+    /// The OS's message appears once in the whole chain (Display + every source).
+    #[test]
+    fn os_errors_are_stated_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let e = std::fs::read(dir.path()).unwrap_err();
+        let os = e.to_string();
+        let err = CoreError::io(dir.path(), e);
+        let mut chain = err.to_string();
+        let mut src = std::error::Error::source(&err);
+        while let Some(s) = src {
+            chain.push_str(&format!(": {s}"));
+            src = s.source();
+        }
+        assert_eq!(chain.matches(&os).count(), 1, "{chain}");
+        // A write over a folder says so once, naming it.
+        let e = write_image(dir.path(), &Image::new(2, 2, 3)).unwrap_err().to_string();
+        assert!(
+            e.contains("unsupported file extension") || e.contains("is a folder"),
+            "{e}"
+        );
+        let sub = dir.path().join("d.png");
+        std::fs::create_dir(&sub).unwrap();
+        let e = atomic_write_bytes(&sub, b"x").unwrap_err().to_string();
+        assert!(e.contains("d.png") && e.contains("is a folder"), "{e}");
     }
 }

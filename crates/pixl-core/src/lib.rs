@@ -6,6 +6,9 @@
 //!   rename) so a failed or interrupted command never leaves a half-written output.
 //! - [`exrio`]: named-channel OpenEXR read/write (multi-part and single-part, f16/f32/u32), the
 //!   layer under C_T files and Cycles render-pass files.
+//! - [`output`]: checks of output files and folders made before any work (format from the
+//!   extension, folder writable, output ≠ input, `--force` for a non-empty folder), and the
+//!   registry of live temporary paths that a signal handler removes on interruption.
 //! - [`passes`]: the Cycles render-pass names, short (`DiffDir`) and long (`Diffuse Direct`),
 //!   shared by the renderer (writer) and the compositor (reader).
 //! - [`rng`]: a small, serialisable, splittable PRNG so every random draw in the project is
@@ -14,6 +17,7 @@ pub mod error;
 pub mod exrio;
 pub mod image;
 pub mod io;
+pub mod output;
 pub mod passes;
 pub mod rng;
 

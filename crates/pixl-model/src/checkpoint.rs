@@ -378,13 +378,18 @@ fn parse<'a>(path: &Path, bytes: &'a [u8], expected: Option<&BTreeMap<String, Ve
 /// paths) of `dtype` on `device`, and the config stored in the file.
 pub fn load(path: &Path, device: &Device, dtype: DType) -> Result<(Config, PixlRelight)> {
     let bytes = read_bytes(path)?;
-    let parsed = parse(path, &bytes, None)?;
+    load_bytes(path, &bytes, device, dtype)
+}
+
+/// [`load`] from the bytes of a checkpoint already in memory (e.g. weights compiled into a
+/// binary); `name` stands for the file in error messages.
+pub fn load_bytes(name: &Path, bytes: &[u8], device: &Device, dtype: DType) -> Result<(Config, PixlRelight)> {
+    let parsed = parse(name, bytes, None)?;
     let mut map = HashMap::new();
-    for (name, view) in parsed.tensors.tensors() {
-        map.insert(name, view.load(device)?.to_dtype(dtype)?);
+    for (tensor, view) in parsed.tensors.tensors() {
+        map.insert(tensor, view.load(device)?.to_dtype(dtype)?);
     }
     let cfg = parsed.cfg;
-    drop(bytes);
     let model = PixlRelight::new(&cfg, VarBuilder::from_tensors(map, dtype, device))?;
     Ok((cfg, model))
 }

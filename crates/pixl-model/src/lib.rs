@@ -4,12 +4,14 @@
 //! One file per paragraph of §3.2: [`vit`] (source encoder), [`convnext`] (intrinsics
 //! encoder), [`fusion`] (per-location fusion), [`trunk`] (self-attention trunk with registers
 //! and 2D RoPE), [`dpt`] (DPT head), [`modulation`] (gain/bias output, Eq. 4). [`model`]
-//! assembles them; [`config`] holds the presets; [`checkpoint`] builds, saves and loads weights
+//! assembles them; [`fullres`] runs it at a working resolution and applies its gain and bias to
+//! a photo of any size; [`config`] holds the presets; [`checkpoint`] builds, saves and loads weights
 //! (safetensors, PyTorch-style names, config in the metadata — see the crate README).
 pub mod checkpoint;
 pub mod config;
 pub mod convnext;
 pub mod dpt;
+pub mod fullres;
 pub mod fusion;
 mod layers;
 pub mod model;
@@ -18,7 +20,8 @@ pub mod trunk;
 pub mod vit;
 
 pub use checkpoint::{
-    build_inference, build_trainable, freeze, load, load_into_varmap, read_config, save, save_tensors, CheckpointError,
+    build_inference, build_trainable, freeze, load, load_bytes, load_into_varmap, read_config, save, save_tensors,
+    CheckpointError,
 };
 pub use config::{Config, ConfigError};
 pub use model::PixlRelight;

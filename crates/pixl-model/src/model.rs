@@ -180,13 +180,20 @@ impl PixlRelight {
     /// The outputs of the four readout blocks (in `trunk().readouts()` order) → the unclipped
     /// prediction `(1 + g) ⊙ I_S + b`, f32 `(B, 3, H, W)`, as [`Self::forward_unclipped`].
     pub fn tail_unclipped(&self, readout_blocks: &[Tensor], src: &Tensor, p: &Prepared) -> Result<Tensor> {
+        let (g, bias) = self.tail_gain_bias(readout_blocks, p)?;
+        Modulation::affine(&src.to_dtype(DType::F32)?, &g, &bias)
+    }
+
+    /// The outputs of the four readout blocks → the gain and bias maps `(B, 3, H, W)` f32,
+    /// cropped to the input size, as [`Self::gain_bias`] computes them.
+    pub fn tail_gain_bias(&self, readout_blocks: &[Tensor], p: &Prepared) -> Result<(Tensor, Tensor)> {
         let readouts = readout_blocks
             .iter()
             .map(|xs| self.trunk.readout(xs, &p.grid))
             .collect::<Result<Vec<_>>>()?;
         let (g, bias) = self.modulation.gain_bias(&self.head.forward(&readouts, p.ph, p.pw)?)?;
         let crop = |t: Tensor| -> Result<Tensor> { t.narrow(2, 0, p.h)?.narrow(3, 0, p.w) };
-        Modulation::affine(&src.to_dtype(DType::F32)?, &crop(g)?, &crop(bias)?)
+        Ok((crop(g)?, crop(bias)?))
     }
 }
 

@@ -7,6 +7,7 @@
 //! - [`mesh`]: triangle meshes.
 //! - [`integrator::render`]: path-trace a scene into a [`Film`] of Cycles passes (`scene` →
 //!   [`geometry`] + [`bvh`] + [`light`] + [`material`] → [`integrator`] → [`film`]).
+//! - [`placement`]: lights placed at a pixel of the photo or from a named side of the scene.
 //! - [`reconstruct::coarse_scene`]: the coarse scene of the paper's inference from a source render.
 // Index loops over fixed-size RGB / axis arrays read like the math; `!(x > 0.0)` is the
 // deliberate NaN-rejecting form.
@@ -25,6 +26,7 @@ pub mod light;
 pub mod material;
 pub mod math;
 pub mod mesh;
+pub mod placement;
 pub mod presets;
 pub mod reconstruct;
 pub mod sampling;

@@ -855,7 +855,9 @@ impl Scene {
         self.validate_files_at(Path::new("<scene>"))
     }
 
-    fn validate_at(&self, path: &Path) -> Result<()> {
+    /// [`Scene::validate`], naming `path` (the scene's file) in its errors: use this one when
+    /// the file is known, so a message never says `<scene>`.
+    pub fn validate_at(&self, path: &Path) -> Result<()> {
         let bad = |message: String| RenderError::Invalid {
             path: path.to_owned(),
             message,
@@ -972,7 +974,8 @@ impl Scene {
         Ok(())
     }
 
-    fn validate_files_at(&self, path: &Path) -> Result<()> {
+    /// [`Scene::validate_files`], naming `path` (the scene's file) in its errors.
+    pub fn validate_files_at(&self, path: &Path) -> Result<()> {
         let check = |p: &Path, what: String| {
             let full = self.resolve(p);
             if full.is_file() {

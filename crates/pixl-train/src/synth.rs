@@ -24,9 +24,11 @@
 //! reconstruct` does without an albedo map): the setting of a user with no albedo estimator.
 //!
 //! Everything is a pure function of `(seed, scene index, lighting index)`: same seed, same set.
+//! A failed or interrupted [`generate`] leaves nothing it created behind.
 use crate::data::folder::{SynthImageRecord, SynthManifest, SynthSceneRecord, MANIFEST};
 use crate::data::Split;
 use crate::error::{Result, TrainError};
+use pixl_core::output::Provisional;
 use pixl_core::{Image, Rng};
 use pixl_intrinsics::compose::{compose, ComposeOptions, PassSet};
 use pixl_render::scene::AreaShape;
@@ -112,7 +114,7 @@ fn texture(rng: &mut Rng, size: usize) -> Image {
     }
 }
 
-fn material(rng: &mut Rng, tex_dir: &Path, tex_name: &str, tex_rel: &str) -> Result<Material> {
+fn material(rng: &mut Rng, tex_dir: &Path, tex_name: &str, tex_rel: &str, made: &mut Provisional) -> Result<Material> {
     let mut m = Material::diffuse(rgb(rng, 0.1, 0.9));
     m.roughness = rng.uniform(0.15, 1.0);
     m.specular_ior_level = rng.uniform(0.2, 0.6);
@@ -120,6 +122,7 @@ fn material(rng: &mut Rng, tex_dir: &Path, tex_name: &str, tex_rel: &str) -> Res
         m.metallic = rng.uniform(0.5, 1.0);
     }
     if rng.bernoulli(0.5) {
+        made.add_new_file(&tex_dir.join(tex_name));
         pixl_core::io::write_png(
             &tex_dir.join(tex_name),
             &texture(rng, 64),
@@ -144,14 +147,23 @@ fn quad(name: &str, size: [f32; 2], translate: [f32; 3], rotate_deg: [f32; 3], m
     }
 }
 
-/// The static part of scene `index`: camera, room and objects (no lights).
+/// The static part of scene `index`: camera, room and objects (no lights); its textures are
+/// written under `out/textures/`.
 pub fn build_scene(opts: &SynthOptions, index: usize, out: &Path) -> Result<Scene> {
+    let mut made = Provisional::new();
+    let scene = build_scene_in(opts, index, out, &mut made)?;
+    made.keep();
+    Ok(scene)
+}
+
+/// [`build_scene`], adding the folders and textures it creates to `made`.
+fn build_scene_in(opts: &SynthOptions, index: usize, out: &Path, made: &mut Provisional) -> Result<Scene> {
     let mut rng = Rng::for_stream(opts.seed, &[STREAM_SCENE, index as u64]);
     let tex_dir = out.join("textures");
-    std::fs::create_dir_all(&tex_dir).map_err(|e| TrainError::io(&tex_dir, e))?;
-    let mat = |rng: &mut Rng, k: usize| {
+    made.create_dir_all(&tex_dir)?;
+    let mut mat = |rng: &mut Rng, k: usize| {
         let name = format!("scene{index:04}_{k}.png");
-        material(rng, &tex_dir, &name, &format!("textures/{name}"))
+        material(rng, &tex_dir, &name, &format!("textures/{name}"), made)
     };
     let (w, d, h) = (rng.uniform(3.0, 5.0), rng.uniform(3.0, 5.0), rng.uniform(2.5, 3.5));
     let mut cam = Camera::new(opts.size, opts.size, rng.uniform(45.0, 65.0));
@@ -332,6 +344,10 @@ fn render_one(
 }
 
 /// Generates the whole set under `out`; `progress(done, total)` after every rendering.
+///
+/// On failure (or interruption, see `pixl_core::output`) everything this call created is removed
+/// again: the folders (`out` itself if it was new, scene folders, reconstructions, `textures/`)
+/// and the files that did not exist before. Files it replaced in an existing set stay replaced.
 pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)) -> Result<SynthManifest> {
     if opts.scenes == 0 || opts.lights < 2 || opts.size < 8 || opts.spp == 0 {
         return Err(TrainError::Config(format!(
@@ -339,7 +355,8 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
             opts.scenes, opts.lights, opts.size, opts.spp
         )));
     }
-    std::fs::create_dir_all(out).map_err(|e| TrainError::io(out, e))?;
+    let mut made = Provisional::new();
+    made.create_dir_all(out)?;
     let n_coarse = if opts.coarse { opts.scenes * opts.lights } else { 0 };
     let total = opts.scenes * opts.lights + n_coarse;
     let mut done = 0;
@@ -347,8 +364,8 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
     for i in 0..opts.scenes {
         let name = format!("scene{i:04}");
         let dir = out.join(&name);
-        std::fs::create_dir_all(&dir).map_err(|e| TrainError::io(&dir, e))?;
-        let base = build_scene(opts, i, out)?;
+        made.create_dir_all(&dir)?;
+        let base = build_scene_in(opts, i, out, &mut made)?;
         let mut images = Vec::new();
         let mut lit = Vec::new();
         for k in 0..opts.lights {
@@ -360,6 +377,8 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
                 format!("{name}/light_{k}.png"),
                 format!("{name}/light_{k}.intrinsics.exr"),
             );
+            made.add_new_file(&out.join(&img));
+            made.add_new_file(&out.join(&ct));
             let film = render_one(opts, opts.seed, &scene, &out.join(&img), &out.join(&ct))?;
             if opts.coarse {
                 lit.push((scene, film));
@@ -375,6 +394,7 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
         for (k, (source_scene, source_film)) in lit.iter().enumerate() {
             let j = (k + 1) % opts.lights;
             let recon_dir = dir.join(format!("coarse_from_light_{k}"));
+            made.create_dir_all(&recon_dir)?;
             let photo = match opts.coarse_albedo {
                 CoarseAlbedo::Diffcol => None,
                 CoarseAlbedo::Photo => Some(source_film.combined_srgb()),
@@ -397,6 +417,8 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
                     .map(|n| n.to_string_lossy().replace(".intrinsics.exr", ".path_traced.png"))
                     .unwrap_or_default(),
             );
+            made.add_new_file(&traced);
+            made.add_new_file(&ct_path);
             // Its own sample streams: the coarse render must not share the target's noise.
             render_one(opts, opts.seed ^ 0xC0A4_5E00, &relit, &traced, &ct_path)?;
             done += 1;
@@ -419,5 +441,6 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
     };
     let json = serde_json::to_string_pretty(&manifest).map_err(|e| TrainError::Other(e.to_string()))?;
     pixl_core::io::atomic_write_bytes(&out.join(MANIFEST), json.as_bytes())?;
+    made.keep();
     Ok(manifest)
 }

@@ -87,9 +87,9 @@ fn describe(plan: &Plan) -> String {
 }
 
 pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
-    if pixl_core::io::extension(&args.output) != "png" {
-        anyhow::bail!("{}: the contact sheet must be a .png file", args.output.display());
-    }
+    let mut inputs = vec![args.ct.as_path()];
+    inputs.extend(args.config.as_deref());
+    pixl_core::output::check_output(&args.output, &["png"], &inputs)?;
     let mut cfg = match &args.config {
         Some(p) => load_config(p)?,
         None => AugmentConfig::default(),

@@ -98,7 +98,7 @@ fn bench_model(args: ModelArgs, ctx: &Ctx) -> anyhow::Result<()> {
             "threads": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             "timing": timing,
         });
-        println!("{}", serde_json::to_string_pretty(&out)?);
+        ctx.print_json(&out)?;
     } else {
         ctx.say(format!(
             "{} ({:.1} M params), {w}x{h}, {:?}, CPU: {}",

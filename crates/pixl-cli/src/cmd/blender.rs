@@ -26,9 +26,7 @@ pub struct ExportArgs {
 pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
     match command {
         Command::Export(a) => {
-            if pixl_core::io::extension(&a.out) != "py" {
-                anyhow::bail!("{}: the script must have the extension .py", a.out.display());
-            }
+            pixl_core::output::check_output(&a.out, &["py"], &[&a.scene])?;
             let scene = pixl_render::Scene::load(&a.scene)?;
             let e = pixl_render::blender::export_blender(&scene, &a.out)?;
             ctx.say(format!(

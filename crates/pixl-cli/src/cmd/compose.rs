@@ -5,7 +5,6 @@
 //! p98 definition and ε in that module's docs), and writes the C_T file (f32 EXR, channels
 //! `albedo.R/G/B`, `shading.R/G/B`, `residual.R/G/B`).
 use crate::Ctx;
-use anyhow::Context;
 use pixl_intrinsics::compose::{compose, ComposeOptions, PassSet};
 use pixl_intrinsics::ct::write_ct;
 use std::path::PathBuf;
@@ -35,9 +34,8 @@ pub struct Args {
 }
 
 pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
-    if pixl_core::io::extension(&args.output) != "exr" {
-        anyhow::bail!("{}: the C_T output must be an .exr file", args.output.display());
-    }
+    let ctx = &ctx.for_json(args.json);
+    pixl_core::output::check_output(&args.output, &["exr"], &[&args.passes])?;
     let set = PassSet::read(&args.passes, args.layer.as_deref())?;
     let opts = ComposeOptions {
         rescale: !args.no_rescale,
@@ -51,7 +49,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             out.sanitized
         );
     }
-    write_ct(&args.output, &out.ct).with_context(|| format!("writing {}", args.output.display()))?;
+    write_ct(&args.output, &out.ct)?;
     if args.json {
         let summary = serde_json::json!({
             "input": args.passes.display().to_string(),
@@ -64,7 +62,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "tau": out.tau,
             "sanitized": out.sanitized,
         });
-        println!("{}", serde_json::to_string_pretty(&summary)?);
+        ctx.print_json(&summary)?;
     } else {
         let scale = match out.tau {
             Some(t) => format!("τ = {t:.6} (S, R rescaled to [0, 1])"),

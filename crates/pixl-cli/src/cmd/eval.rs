@@ -10,10 +10,12 @@ use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
 #[command(
-    after_help = "Examples:\n  pixl eval --dataset miiw:/data/miiw --weights model.safetensors --lpips alex_lpips.safetensors --out eval-miiw\n  pixl eval --dataset folder:shots --baselines identity,compose --pairs pairs.csv --out eval-shots"
+    after_help = concat!("Examples:\n  pixl eval --dataset miiw:/data/miiw --weights model.safetensors --lpips alex_lpips.safetensors --out eval-miiw\n  \
+pixl eval --dataset folder:shots --baselines identity,compose --pairs pairs.csv --out eval-shots\n\n",
+crate::dataset_kinds_help!())
 )]
 pub struct Args {
-    /// Dataset as KIND:ROOT (miiw, miiw@MIP, bigtime, vidit, folder, synth; see `pixl train --help`).
+    /// Dataset as KIND:ROOT (miiw, miiw@MIP, bigtime, vidit, folder, synth; layouts below).
     #[arg(long)]
     pub dataset: String,
     /// Which scenes: test (default; MIIW: the 30 `everett*` scenes), train or all.
@@ -46,7 +48,8 @@ pub struct Args {
     /// Without it LPIPS is reported as absent.
     #[arg(long)]
     pub lpips: Option<PathBuf>,
-    /// Output directory for results.md, results.json, per_pair.csv.
+    /// Output folder for results.md, results.json, per_pair.csv (created if missing; those three
+    /// files are replaced atomically).
     #[arg(long, default_value = "eval-out")]
     pub out: PathBuf,
     /// Print the JSON summary (method rows) on stdout instead of the table.
@@ -89,6 +92,17 @@ fn parse_dtype(s: &str) -> anyhow::Result<DType> {
 }
 
 pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
+    let ctx = &ctx.for_json(args.json);
+    let mut inputs: Vec<&std::path::Path> = Vec::new();
+    inputs.extend(args.pairs.as_deref());
+    inputs.extend(args.weights.as_deref());
+    inputs.extend(args.lpips.as_deref());
+    pixl_core::output::check_output_dir(
+        &args.out,
+        true,
+        &["results.md", "results.json", "per_pair.csv"],
+        &inputs,
+    )?;
     let split: Split = args.split.parse()?;
     let dataset = pixl_train::data::open(&args.dataset, split)?;
     let mut pairs = match &args.pairs {
@@ -167,7 +181,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "lpips_net": report.lpips_net,
             "methods": report.methods,
         });
-        println!("{}", serde_json::to_string_pretty(&summary)?);
+        ctx.print_json(&summary)?;
     } else {
         ctx.say(pixl_eval::report::markdown(&report));
         for m in &report.methods {

@@ -32,9 +32,7 @@ pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
 }
 
 fn preview(args: PreviewArgs, ctx: &Ctx) -> anyhow::Result<()> {
-    if pixl_core::io::extension(&args.output) != "png" {
-        anyhow::bail!("{}: the preview must be a .png file", args.output.display());
-    }
+    pixl_core::output::check_output(&args.output, &["png"], &[&args.ct])?;
     let ct = read_ct(&args.ct)?;
     let sheet = preview_sheet(&ct)?;
     write_png(&args.output, &sheet, PngDepth::Eight)?;

@@ -26,7 +26,7 @@ pub struct InitArgs {
     /// Seed of the initialisation.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Output .safetensors file.
+    /// Output .safetensors file (replaced atomically if it exists).
     #[arg(short = 'o', long = "out")]
     pub out: PathBuf,
 }
@@ -52,6 +52,8 @@ pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
 }
 
 fn init(args: InitArgs, ctx: &Ctx) -> anyhow::Result<()> {
+    // A config given as a file is an input (a preset name is no file and is skipped).
+    pixl_core::output::check_output(&args.out, &["safetensors"], &[std::path::Path::new(&args.config)])?;
     let cfg = Config::from_name_or_file(&args.config)?;
     let (varmap, _model) = pixl_model::build_trainable(&cfg, args.seed, &Device::Cpu)
         .with_context(|| format!("building the `{}` network", args.config))?;
@@ -79,8 +81,7 @@ fn info(args: InfoArgs, ctx: &Ctx) -> anyhow::Result<()> {
             .map(|(m, n)| (m.to_string(), serde_json::Value::from(*n)))
             .collect();
         let out = serde_json::json!({ "source": source, "modules": map, "total": total, "config": cfg });
-        println!("{}", serde_json::to_string_pretty(&out)?);
-        return Ok(());
+        return ctx.print_json(&out);
     }
     ctx.say(format!(
         "{source}: d={}, ViT {} blocks, trunk {} blocks",

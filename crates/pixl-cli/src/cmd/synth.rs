@@ -1,22 +1,31 @@
 //! `pixl synth`: generate a synthetic multi-illumination data set with exact intrinsics
 //! (`pixl_train::synth`): per scene `light_<k>.png` + `light_<k>.intrinsics.exr`, plus `scenes.json`.
+//!
+//! The output folder is checked first: a non-empty one is refused without `--force`. A run that
+//! fails or is interrupted removes the folders and files it created (`pixl_core::output::Provisional`).
+//! `--json` prints one document on stdout: `{output, scenes, test_scenes, lights, size, spp,
+//! seed, coarse, manifest, seconds}`; see `crates/pixl-cli/README.md`.
 use crate::Ctx;
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
-#[command(after_help = "Example:\n  pixl synth --scenes 48 --lights 4 --size 128 --spp 16 --seed 1 -o synth/")]
+#[command(
+    after_help = "Example:\n  pixl synth --scenes 48 --lights 4 --size 128 --spp 16 --seed 1 -o synth/\n\n\
+Layout: OUT/scenes.json, OUT/scene<NNNN>/light_<k>.png (+ light_<k>.intrinsics.exr), OUT/textures/.\n\
+Read it back with --dataset synth:OUT (pixl train, pixl eval)."
+)]
 pub struct Args {
-    /// Number of procedural scenes.
-    #[arg(long, default_value_t = 100)]
+    /// Number of procedural scenes (at least 1).
+    #[arg(long, default_value_t = 100, value_parser = crate::ctx::at_least_one_usize)]
     pub scenes: usize,
     /// Lightings per scene (at least 2).
-    #[arg(long, default_value_t = 6)]
+    #[arg(long, default_value_t = 6, value_parser = at_least_two)]
     pub lights: usize,
-    /// Image side in pixels (square images).
-    #[arg(long, default_value_t = 256)]
+    /// Image side in pixels (square images, at least 8).
+    #[arg(long, default_value_t = 256, value_parser = at_least_eight)]
     pub size: u32,
-    /// Path-tracing samples per pixel.
-    #[arg(long, default_value_t = 16)]
+    /// Path-tracing samples per pixel (at least 1).
+    #[arg(long, default_value_t = 16, value_parser = crate::ctx::at_least_one)]
     pub spp: u32,
     /// Maximum bounces of the path tracer.
     #[arg(long, default_value_t = 2)]
@@ -37,12 +46,36 @@ pub struct Args {
     /// `pixl reconstruct` does without --albedo: no estimator, source shading stays in it).
     #[arg(long, value_enum, default_value_t = CoarseAlbedoArg::Diffcol, requires = "coarse")]
     pub coarse_albedo: CoarseAlbedoArg,
-    /// Output directory.
+    /// Output folder (created if missing; a non-empty one only with --force).
     #[arg(short, long)]
     pub out: PathBuf,
+    /// Write into a non-empty output folder, replacing the files of the same names.
+    #[arg(long)]
+    pub force: bool,
+    /// Print a JSON summary on stdout (even with --quiet) instead of the summary line.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn at_least_two(s: &str) -> Result<usize, String> {
+    crate::ctx::parse_count(s, 2, u32::MAX as u64)
+        .map(|v| v as usize)
+        .map_err(|e| {
+            if e.contains("at least") {
+                format!("{e} (a pair of lightings)")
+            } else {
+                e
+            }
+        })
+}
+
+fn at_least_eight(s: &str) -> Result<u32, String> {
+    crate::ctx::parse_count(s, 8, u32::MAX as u64).map(|v| v as u32)
 }
 
 pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
+    let ctx = &ctx.for_json(args.json);
+    pixl_core::output::check_output_dir(&args.out, args.force, &[], &[])?;
     let opts = pixl_train::synth::SynthOptions {
         scenes: args.scenes,
         lights: args.lights,
@@ -69,13 +102,27 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         .iter()
         .filter(|s| s.split == pixl_train::data::Split::Test)
         .count();
+    let secs = t0.elapsed().as_secs_f64();
+    if args.json {
+        ctx.print_json(&serde_json::json!({
+            "output": args.out.display().to_string(),
+            "scenes": manifest.scenes.len(),
+            "test_scenes": test,
+            "lights": args.lights,
+            "size": args.size,
+            "spp": args.spp,
+            "seed": args.seed,
+            "coarse": args.coarse,
+            "manifest": args.out.join(pixl_train::data::folder::MANIFEST).display().to_string(),
+            "seconds": secs,
+        }))?;
+    }
     ctx.say(format!(
-        "wrote {} scenes x {} lightings ({} test scenes) to {} in {:.1} s",
+        "wrote {} scenes x {} lightings ({} test scenes) to {} in {secs:.1} s",
         manifest.scenes.len(),
         args.lights,
         test,
         args.out.display(),
-        t0.elapsed().as_secs_f64()
     ));
     Ok(())
 }

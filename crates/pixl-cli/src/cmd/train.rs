@@ -1,16 +1,34 @@
 //! `pixl train --config train.toml [--resume]`: train PIXLRelight (`pixl_train::Trainer`).
 //! Flags override the config file. Progress bar with loss, lr and images/s; JSONL log,
 //! sample grids and atomic checkpoints under `[run] out_dir`.
+//!
+//! The output folder is checked before any work (`pixl_core::output::check_output_dir`: creatable,
+//! writable, the weights it writes are not the run's inputs). `--json` prints one document on
+//! stdout: `{config, out_dir, resumed, start_step, step, final_loss, weights, state, seconds}`;
+//! see `crates/pixl-cli/README.md`.
 use crate::Ctx;
 use anyhow::Context;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug)]
 #[command(
-    after_help = "Examples:\n  pixl train --config assets/demo-weights/train.toml\n  pixl train --config train.toml --resume\n  pixl train --config train.toml --init-weights assets/demo-weights/pixl-tiny-synth.safetensors"
+    after_help = concat!("Examples:\n  pixl train --config assets/demo-weights/train.toml\n  pixl train --config train.toml --resume\n  \
+pixl train --config train.toml --init-weights assets/demo-weights/pixl-tiny-synth.safetensors\n\n\
+train.toml (every key optional; defaults are the paper's settings):\n  \
+[model]           preset = \"tiny\" | \"small\" | \"paper\" | a model config file; init_seed; init_weights (fine-tune)\n  \
+[data]            dataset = \"KIND:ROOT\" (kinds below); split = \"train\"; cache = true\n  \
+[data.sampler]    long_side = 512; multiple; min_scale; aspect_min; aspect_max; flip; coarse_ct; coarse_pair_share\n  \
+[optim]           batch_size = 4; accumulate = 1; clip_norm = 1.0; precision = \"f32\" | \"bf16\"; checkpoint = false\n  \
+[optim.schedule]  peak_lr = 5e-5; final_lr; warmup_steps; total_steps\n  \
+[optim.adamw]     beta1; beta2; eps; weight_decay\n  \
+[loss]            perceptual_weight = 0.2 (0: L1 only, no VGG weights needed); vgg = \"vgg16.safetensors\"\n  \
+[augment]         enabled = true (corrupt C_T on the fly with the paper's App. C pipeline; see `pixl augment`)\n  \
+[run]             out_dir; steps; seed; log_every; sample_every; checkpoint_every\n\
+An example: assets/demo-weights/train.toml (the run of the bundled demo weights).\n\n",
+crate::dataset_kinds_help!())
 )]
 pub struct Args {
-    /// The run's `train.toml` (see `pixl_train::config`).
+    /// The run's `train.toml` (keys listed below).
     #[arg(long)]
     pub config: PathBuf,
     /// Continue from `<out_dir>/train-state.safetensors` (bit-exact on CPU).
@@ -32,9 +50,13 @@ pub struct Args {
     /// config must match `[model] preset`). Ignored with `--resume`.
     #[arg(long)]
     pub init_weights: Option<PathBuf>,
+    /// Print a JSON summary on stdout (even with --quiet) instead of the summary lines.
+    #[arg(long)]
+    pub json: bool,
 }
 
 pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
+    let ctx = &ctx.for_json(args.json);
     let mut cfg = pixl_train::TrainConfig::from_file(&args.config)?;
     if let Some(v) = args.vgg {
         cfg.loss.vgg = Some(v);
@@ -51,6 +73,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     if let Some(o) = args.out {
         cfg.run.out_dir = o;
     }
+    check_out_dir(&cfg, &args.config)?;
     let device = candle_core::Device::Cpu;
     // A resumed run restores its own weights: the fine-tuning start is not read again (and
     // need not exist any more); train.toml keeps naming it.
@@ -89,6 +112,8 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     pixl_core::io::atomic_write_bytes(&saved, text.as_bytes())?;
     let pb = ctx.progress(cfg.run.steps, "train");
     pb.set_position(trainer.step);
+    let start_step = trainer.step;
+    let mut last_loss = None;
     let t0 = std::time::Instant::now();
     trainer.run(|r| {
         pb.set_position(r.step);
@@ -96,14 +121,48 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "loss {:.4} lr {:.2e} {:.1} img/s",
             r.loss, r.lr, r.images_per_s
         ));
+        last_loss = Some(r.loss);
     })?;
     pb.finish_and_clear();
+    let secs = t0.elapsed().as_secs_f64();
+    if args.json {
+        ctx.print_json(&serde_json::json!({
+            "config": args.config.display().to_string(),
+            "out_dir": cfg.run.out_dir.display().to_string(),
+            "resumed": args.resume,
+            "start_step": start_step,
+            "step": trainer.step,
+            "final_loss": last_loss,
+            "weights": trainer.model_path().display().to_string(),
+            "state": trainer.state_path().display().to_string(),
+            "seconds": secs,
+        }))?;
+    }
     ctx.say(format!(
-        "trained to step {} in {:.1} s; weights {}",
+        "trained to step {} in {secs:.1} s; weights {}",
         trainer.step,
-        t0.elapsed().as_secs_f64(),
         trainer.model_path().display()
     ));
+    Ok(())
+}
+
+/// The run's folder, checked before any work: creatable and writable, and the weights and state
+/// it will hold are none of the run's inputs (the config, the fine-tuning start, the VGG weights).
+/// An existing folder is fine: a finished run is refused later unless `--resume`.
+fn check_out_dir(cfg: &pixl_train::TrainConfig, config: &Path) -> anyhow::Result<()> {
+    let mut inputs: Vec<&Path> = vec![config];
+    inputs.extend(cfg.model.init_weights.as_deref());
+    inputs.extend(cfg.loss.vgg.as_deref());
+    pixl_core::output::check_output_dir(
+        &cfg.run.out_dir,
+        true,
+        &[
+            pixl_train::state::MODEL_FILE,
+            pixl_train::state::STATE_FILE,
+            "log.jsonl",
+        ],
+        &inputs,
+    )?;
     Ok(())
 }
 

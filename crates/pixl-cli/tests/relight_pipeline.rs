@@ -1,0 +1,268 @@
+//! `pixl relight PHOTO --depth … --preset/--light/--scene … -o OUT`: the one-command form on tiny
+//! photos, through the real binary — the relit image has the photo's size, `--keep` holds every
+//! intermediate, lights given every way land in the kept scene, fresh weights give the photo back
+//! exactly through the whole chain, and bad requests fail before any work.
+use pixl_core::Image;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn pixl(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_pixl"))
+        .args(args)
+        .arg("--quiet")
+        .output()
+        .expect("run pixl")
+}
+
+fn ok(args: &[&str]) -> String {
+    let o = pixl(args);
+    assert!(
+        o.status.success(),
+        "pixl {args:?} failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).to_string()
+}
+
+fn fails(args: &[&str]) -> String {
+    let o = pixl(args);
+    assert_eq!(
+        o.status.code(),
+        Some(1),
+        "pixl {args:?} should fail: {}",
+        String::from_utf8_lossy(&o.stdout)
+    );
+    String::from_utf8_lossy(&o.stderr).to_string()
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+/// A `w × h` photo (a gradient with some texture) and its depth: a wall 3 m away tilted so the
+/// right side is farther, in metres (EXR, one channel).
+fn photo_and_depth(dir: &Path, w: usize, h: usize) -> (PathBuf, PathBuf) {
+    let photo = dir.join("photo.png");
+    let img = Image::from_fn(w, h, 3, |x, y, c| {
+        (0.2 + 0.5 * x as f32 / w as f32 + 0.1 * c as f32 + 0.05 * ((x / 3 + y / 3) % 2) as f32).min(1.0)
+    });
+    pixl_core::io::write_image(&photo, &img).unwrap();
+    let depth = dir.join("depth.exr");
+    let d = Image::from_fn(w, h, 1, |x, _, _| 3.0 + x as f32 / w as f32);
+    pixl_core::io::write_image(&depth, &d).unwrap();
+    (photo, depth)
+}
+
+#[test]
+fn one_command_with_depth_and_keep_writes_the_relit_photo_and_every_intermediate() {
+    let dir = tempfile::tempdir().unwrap();
+    let (photo, depth) = photo_and_depth(dir.path(), 40, 30);
+    let out = dir.path().join("relit.png");
+    let keep = dir.path().join("steps");
+    let json = ok(&[
+        "relight",
+        s(&photo),
+        "--depth",
+        s(&depth),
+        "--preset",
+        "warm-overhead-flash",
+        "--spp",
+        "4",
+        "-o",
+        s(&out),
+        "--keep",
+        s(&keep),
+        "--json",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(v["weights"].as_str(), Some("bundled pixl-tiny-synth.safetensors"));
+    let relit = pixl_core::io::read_rgb(&out).unwrap();
+    assert_eq!((relit.width, relit.height), (40, 30));
+    let src = pixl_core::io::read_rgb(&photo).unwrap();
+    assert!(relit.data.iter().all(|v| (0.0..=1.0).contains(v)));
+    assert!(relit.data != src.data, "the trained weights should change the photo");
+    for name in [
+        "scene/scene.toml",
+        "passes.exr",
+        "CT.exr",
+        "CT_sheet.png",
+        "render.png",
+        "before_after.png",
+    ] {
+        assert!(keep.join(name).is_file(), "{name} missing");
+    }
+    let ct = pixl_intrinsics::ct::read_ct(&keep.join("CT.exr")).unwrap();
+    assert_eq!((ct.width(), ct.height()), (40, 30));
+    let pair = pixl_core::io::read_rgb(&keep.join("before_after.png")).unwrap();
+    assert_eq!((pair.width, pair.height), (80, 30));
+    let scene = pixl_render::Scene::load(&keep.join("scene/scene.toml")).unwrap();
+    assert_eq!(scene.lights.len(), 1);
+    assert!(scene.lights[0].name().starts_with("warm-overhead-flash"));
+    let kept = v["kept"].as_array().unwrap();
+    assert_eq!(kept.len(), 6);
+}
+
+/// A photo larger than `--max-side`: rendered and relit at the working size, applied at full
+/// size. With fresh weights (g = b = 0) the output is the photo, exactly, through the whole chain.
+#[test]
+fn fresh_weights_through_the_whole_chain_return_the_photo_at_full_size() {
+    let dir = tempfile::tempdir().unwrap();
+    let (photo, depth) = photo_and_depth(dir.path(), 90, 60);
+    let weights = dir.path().join("w.safetensors");
+    ok(&["model", "init", "--config", "tiny", "--seed", "1", "-o", s(&weights)]);
+    let out = dir.path().join("relit.png");
+    let keep = dir.path().join("k");
+    let json = ok(&[
+        "relight",
+        s(&photo),
+        "--depth",
+        s(&depth),
+        "--preset",
+        "cool-side-flash",
+        "--spp",
+        "2",
+        "--max-side",
+        "32",
+        "--weights",
+        s(&weights),
+        "-o",
+        s(&out),
+        "--keep",
+        s(&keep),
+        "--json",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    assert_eq!(
+        (v["working_width"].as_u64(), v["working_height"].as_u64()),
+        (Some(32), Some(21))
+    );
+    let ct = pixl_intrinsics::ct::read_ct(&keep.join("CT.exr")).unwrap();
+    assert_eq!(
+        (ct.width(), ct.height()),
+        (32, 21),
+        "the render runs at the working size"
+    );
+    let relit = pixl_core::io::read_rgb(&out).unwrap();
+    let src = pixl_core::io::read_rgb(&photo).unwrap();
+    assert_eq!((relit.width, relit.height), (90, 60));
+    assert!(relit
+        .data
+        .iter()
+        .zip(&src.data)
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
+}
+
+/// Lights from `--light` (the flags of `pixl light add`) and `--scene FILE` add up with a preset.
+#[test]
+fn lights_from_flags_and_a_file_land_in_the_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let (photo, depth) = photo_and_depth(dir.path(), 32, 24);
+    let lights = dir.path().join("lights.toml");
+    std::fs::write(
+        &lights,
+        "[[lights]]\ntype = \"point\"\nname = \"mine\"\nposition = [0.0, 1.0, -1.0]\npower = 50.0\n",
+    )
+    .unwrap();
+    let out = dir.path().join("relit.exr");
+    let keep = dir.path().join("k");
+    ok(&[
+        "relight",
+        s(&photo),
+        "--depth",
+        s(&depth),
+        "--spp",
+        "2",
+        "-o",
+        s(&out),
+        "--keep",
+        s(&keep),
+        "--light",
+        "--type spot --from left --power 300 --name side",
+        "--light",
+        "--at-pixel 16,12 --offset 0.5",
+        "--scene",
+        s(&lights),
+    ]);
+    let relit = pixl_core::io::read_rgb(&out).unwrap();
+    assert_eq!((relit.width, relit.height), (32, 24));
+    let scene = pixl_render::Scene::load(&keep.join("scene/scene.toml")).unwrap();
+    assert_eq!(scene.lights.len(), 3);
+    match &scene.lights[0] {
+        pixl_render::Light::Spot {
+            name,
+            position,
+            look_at,
+            power,
+            ..
+        } => {
+            assert_eq!(name, "side");
+            assert_eq!(*power, 300.0);
+            let c = look_at.expect("aimed at the bounds' centre");
+            assert!(position[0] < c[0] - 0.5, "from the left: {position:?} vs centre {c:?}");
+        }
+        other => panic!("expected the spot, got {other:?}"),
+    }
+    match &scene.lights[1] {
+        // The image centre sees the wall at about 3.5 m straight ahead; 0.5 m off it toward the camera.
+        pixl_render::Light::Point { position, .. } => {
+            assert!(position[0].abs() < 0.2 && position[1].abs() < 0.2, "{position:?}");
+            assert!((-3.3..-2.7).contains(&position[2]), "{position:?}");
+        }
+        other => panic!("expected the point light, got {other:?}"),
+    }
+    assert_eq!(scene.lights[2].name(), "mine");
+}
+
+/// Bad requests fail before any work: nothing is written, `--keep` is not created.
+#[test]
+fn bad_requests_fail_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let (photo, depth) = photo_and_depth(dir.path(), 16, 12);
+    let out = dir.path().join("relit.png");
+    let keep = dir.path().join("k");
+    let base = |extra: &[&str]| -> Vec<String> {
+        let mut v: Vec<String> = [
+            "relight",
+            s(&photo),
+            "--depth",
+            s(&depth),
+            "-o",
+            s(&out),
+            "--keep",
+            s(&keep),
+        ]
+        .iter()
+        .map(|x| x.to_string())
+        .collect();
+        v.extend(extra.iter().map(|x| x.to_string()));
+        v
+    };
+    let run = |extra: &[&str]| {
+        let args = base(extra);
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        fails(&refs)
+    };
+    let err = run(&[]);
+    assert!(err.contains("--preset") && err.contains("--light"), "{err}");
+    let err = run(&["--light", "--type point --spot-size 30"]);
+    assert!(err.contains("--spot-size") && err.contains("spot"), "{err}");
+    let err = run(&["--light", "--type spot --colour 1,1,1"]);
+    assert!(err.contains("--light") && err.contains("--colour"), "{err}");
+    let err = run(&["--light", "--color 1,0"]);
+    assert!(err.contains("expected 3 values r,g,b"), "{err}");
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(
+        &bad,
+        "[[lights]]\ntype = \"point\"\nposition = [0, 1, 0]\npower = -5.0\n",
+    )
+    .unwrap();
+    let err = run(&["--scene", s(&bad)]);
+    assert!(err.contains("bad.toml") && err.contains("power"), "{err}");
+    assert!(!out.exists() && !keep.exists());
+    // A --keep folder with files in it is refused unless --force.
+    std::fs::create_dir(&keep).unwrap();
+    std::fs::write(keep.join("x"), b"x").unwrap();
+    let err = run(&["--preset", "soft-frontal-sun"]);
+    assert!(err.contains(s(&keep)) || err.contains("k"), "{err}");
+    assert!(!out.exists());
+}
