@@ -418,3 +418,31 @@ fn an_empty_mesh_blames_the_right_flag() {
         assert!(!out.exists(), "{depth}: {} was created", out.display());
     }
 }
+
+/// `--json`: one document on stdout with the mesh's counts (a step of 2 m / 4 m on 8×6: the
+/// column of quads across it is cut, 2·7·5 − 2·5 = 60 triangles kept, 10 cut).
+#[test]
+fn json_summary_counts_the_mesh() {
+    let dir = tempfile::tempdir().unwrap();
+    photo(&dir.path().join("photo.png"), 8, 6);
+    let depth: Vec<f32> = (0..48).map(|i| if i % 8 < 4 { 2.0 } else { 4.0 }).collect();
+    npy_f32(&dir.path().join("d.npy"), 6, 8, &depth);
+    let out = dir.path().join("scene");
+    let o = pixl()
+        .args(["reconstruct", "--quiet", "--json", "--fov", "60", "--image"])
+        .arg(dir.path().join("photo.png"))
+        .arg("--depth")
+        .arg(dir.path().join("d.npy"))
+        .arg("-o")
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("stdout is one JSON document");
+    assert_eq!(v["triangles"], 60);
+    assert_eq!(v["triangles_cut"], 10);
+    assert_eq!((v["width"].as_u64(), v["height"].as_u64()), (Some(8), Some(6)));
+    assert!((v["fov_y_deg"].as_f64().unwrap() - 60.0).abs() < 1e-6);
+    assert_eq!(v["stride"], 1);
+    assert!(out.join("scene.toml").is_file());
+}

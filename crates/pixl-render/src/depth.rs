@@ -393,30 +393,46 @@ pub fn read_depth(path: &Path, depth_scale: f32) -> Result<DepthMap> {
     }
 }
 
+/// The depth channel of an EXR with these channel names: `Z`, else the `Z` of a `Depth` layer
+/// (Cycles' `ViewLayer.Depth.Z`); in a file whose channels are all of one layer, also that
+/// layer's `Z`, `Y` or `R` channel, or its only channel. A multilayer file without a `Depth`
+/// layer has none: another layer's `Z` or `Y` (a normal pass) is not depth.
+fn pick_depth_channel<'a>(names: &[&'a str]) -> Option<&'a str> {
+    let layer = |n: &str| n.rsplit_once('.').map(|(l, _)| l.to_owned()).unwrap_or_default();
+    let exact = |want: &str| names.iter().copied().find(|n| *n == want);
+    if let Some(n) = exact("Z").or_else(|| {
+        names
+            .iter()
+            .copied()
+            .find(|n| *n == "Depth.Z" || n.ends_with(".Depth.Z"))
+    }) {
+        return Some(n);
+    }
+    let first = layer(names.first()?);
+    if names.iter().any(|n| layer(n) != first) {
+        return None;
+    }
+    let in_layer = |c: &str| {
+        names
+            .iter()
+            .copied()
+            .find(|n| n.rsplit_once('.').map_or(*n == c, |(_, ch)| ch == c))
+    };
+    in_layer("Z")
+        .or_else(|| in_layer("Y"))
+        .or_else(|| in_layer("R"))
+        .or_else(|| (names.len() == 1).then(|| names[0]))
+}
+
 fn read_depth_exr(path: &Path) -> Result<DepthMap> {
     let chans = pixl_core::exrio::read_exr_channels(path)?;
     let names: Vec<&str> = chans.names().collect();
-    let find = |suffix: &str| -> Option<&str> {
-        names.iter().copied().find(|n| *n == suffix).or_else(|| {
-            let mut it = names.iter().copied().filter(|n| n.ends_with(&format!(".{suffix}")));
-            match (it.next(), it.next()) {
-                (Some(n), None) => Some(n),
-                _ => None,
-            }
-        })
-    };
-    let pick = find("Z").or_else(|| find("Y")).or_else(|| find("R")).or_else(|| {
-        if names.len() == 1 {
-            names.first().copied()
-        } else {
-            None
-        }
-    });
+    let pick = pick_depth_channel(&names);
     let Some(name) = pick else {
         return Err(DepthError::Format {
             path: path.to_owned(),
             reason: format!(
-                "no depth channel (looked for Z, *.Z, Y, R or a single channel); found {}",
+                "no depth channel (looked for Z or a Depth layer's Z, else in a file of one layer its Z, Y, R or only channel); found {}",
                 names.join(", ")
             ),
         });
@@ -700,8 +716,34 @@ impl Lexer<'_> {
 }
 
 #[cfg(test)]
-mod cut_count_tests {
+mod depth_input_tests {
     use super::*;
+
+    /// A render's passes hold `Normal.X/Y/Z` beside `Depth.Z`: the depth is `Depth.Z`, never the
+    /// normal's `Y`; without a Depth layer a multilayer file has no depth; a one-layer file's
+    /// `Y` or only channel is its depth.
+    #[test]
+    fn depth_channel_of_multilayer_and_single_layer_files() {
+        let render = [
+            "ViewLayer.Combined.R",
+            "ViewLayer.Depth.Z",
+            "ViewLayer.Normal.X",
+            "ViewLayer.Normal.Y",
+            "ViewLayer.Normal.Z",
+        ];
+        assert_eq!(pick_depth_channel(&render), Some("ViewLayer.Depth.Z"));
+        let no_depth = [
+            "ViewLayer.Normal.X",
+            "ViewLayer.Normal.Y",
+            "ViewLayer.Normal.Z",
+            "ViewLayer.Combined.R",
+        ];
+        assert_eq!(pick_depth_channel(&no_depth), None);
+        assert_eq!(pick_depth_channel(&["B", "G", "R"]), Some("R"));
+        assert_eq!(pick_depth_channel(&["Y"]), Some("Y"));
+        assert_eq!(pick_depth_channel(&["depth"]), Some("depth"));
+        assert_eq!(pick_depth_channel(&["Z", "Normal.Y"]), Some("Z"));
+    }
 
     /// A 5×4 map: a floor whose depth grows 10 % per row, and one pixel without depth. Counted
     /// by hand: at stride 1, 4×3 quads = 24 triangles; the 6 around (2, 1) lack depth; rows

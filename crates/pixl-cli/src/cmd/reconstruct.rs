@@ -134,6 +134,9 @@ pub struct Args {
     /// with the lights it had.
     #[arg(long)]
     pub force: bool,
+    /// Print a JSON summary on stdout (even with --quiet) instead of the summary line.
+    #[arg(long)]
+    pub json: bool,
     /// Longest side the photo is resized to for depth estimation (without --depth).
     #[arg(long, default_value_t = 504)]
     pub process_res: usize,
@@ -281,6 +284,8 @@ fn write_scalar_png(img: &Image, dst: &Path) -> anyhow::Result<()> {
 }
 
 pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
+    let ctx = &ctx.for_json(args.json);
+    let started = std::time::Instant::now();
     // An existing scene (with the lights someone placed) is replaced only with --force; none of
     // the files written may be an input.
     let mut inputs: Vec<&Path> = vec![&args.image];
@@ -520,6 +525,25 @@ more than --max-triangles {}; pass --stride 1 to keep them all",
         possible.saturating_sub(mesh.num_triangles()),
         scene_path.display()
     ));
+    if args.json {
+        ctx.print_json(&serde_json::json!({
+            "image": args.image,
+            "depth": args.depth,
+            "output": args.out,
+            "scene": scene_path,
+            "mesh": args.out.join(mesh_name),
+            "width": size.0,
+            "height": size.1,
+            "focal_px": intr.focal_px,
+            "fov_y_deg": intr.vfov_deg(),
+            "focal_source": focal.source.to_string(),
+            "stride": stride,
+            "vertices": mesh.positions.len(),
+            "triangles": mesh.num_triangles(),
+            "triangles_cut": possible.saturating_sub(mesh.num_triangles()),
+            "seconds": started.elapsed().as_secs_f64(),
+        }))?;
+    }
     created.keep();
     Ok(())
 }
