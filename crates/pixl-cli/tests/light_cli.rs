@@ -218,6 +218,39 @@ fn from_and_azimuth_place_lights_around_the_scene_bounds() {
         }
         other => panic!("{other:?}"),
     }
+    // --from left raised by --elevation 30, 2 m: by hand, mirrored from the case above.
+    let (code, stdout, stderr, lights) = add_to_wall(&[
+        "--type",
+        "point",
+        "--from",
+        "left",
+        "--elevation",
+        "30",
+        "--distance",
+        "2",
+        "--power",
+        "10",
+    ]);
+    assert_eq!(code, Some(0), "{stderr}");
+    assert!(stdout.contains("from left, elevation 30"), "{stdout}");
+    assert!(
+        matches!(&lights[..], [Light::Point { position, .. }] if close(*position, [-2.0 * e.cos(), 2.0 * e.sin(), -3.0], 1e-4)),
+        "{lights:?}"
+    );
+    // Above already is an elevation.
+    let (code, _, stderr, lights) = add_to_wall(&[
+        "--type",
+        "point",
+        "--from",
+        "above",
+        "--elevation",
+        "30",
+        "--power",
+        "10",
+    ]);
+    assert_eq!(code, Some(1));
+    assert!(stderr.contains("--from above already sets the elevation"), "{stderr}");
+    assert!(lights.is_empty());
     // "front" is the camera's side; "behind" the far side of the scene.
     let (_, _, _, lights) = add_to_wall(&["--type", "point", "--from", "front", "--distance", "1", "--power", "10"]);
     assert!(matches!(&lights[..], [Light::Point { position, .. }] if close(*position, [0.0, 0.0, -2.0], 1e-5)));

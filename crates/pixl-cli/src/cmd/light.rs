@@ -164,12 +164,13 @@ pub struct LightSpec {
     /// the camera's side; "behind" is beyond the scene, a backlight: a reconstructed photo is one
     /// surface facing the camera, which a light behind it reaches only from the back).
     #[arg(long, value_parser = ["left", "right", "above", "below", "front", "behind"],
-          conflicts_with_all = ["azimuth", "elevation"])]
+          conflicts_with = "azimuth")]
     pub from: Option<String>,
     /// Degrees around the vertical from the camera's side: 0 front, 90 right, 180 behind, -90 left.
     #[arg(long, allow_negative_numbers = true)]
     pub azimuth: Option<f32>,
-    /// Degrees above the level of the bounds' centre (90 straight above; default 0).
+    /// Degrees above the level of the bounds' centre (90 straight above; default 0); with
+    /// --from left|right|front|behind, raises that side's light.
     #[arg(long, allow_negative_numbers = true)]
     pub elevation: Option<f32>,
     /// With --from / --azimuth: metres from the bounds' centre (default 1.5 x its half-diagonal).
@@ -351,7 +352,12 @@ impl LightSpec {
                 Some(side) => {
                     let s = Side::parse(side).ok_or_else(|| anyhow::anyhow!("--from {side}: unknown side"))?;
                     let (az, el) = s.azimuth_elevation();
-                    (az, el, format!("from {side}"))
+                    match self.elevation {
+                        // A side seen from the camera, raised or lowered by --elevation.
+                        Some(e) if el == 0.0 => (az, e, format!("from {side}, elevation {e}°")),
+                        Some(_) => bail!("--elevation: --from {side} already sets the elevation; use --from left|right|front|behind with --elevation, or --azimuth/--elevation"),
+                        None => (az, el, format!("from {side}")),
+                    }
                 }
                 None => {
                     let (az, el) = (self.azimuth.unwrap_or(0.0), self.elevation.unwrap_or(0.0));

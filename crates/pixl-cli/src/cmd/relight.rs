@@ -53,7 +53,7 @@ const OUTPUT_EXTS: &[&str] = &["png", "jpg", "jpeg", "exr"];
 #[command(after_help = concat!("Examples:\n  \
 pixl relight photo.jpg --preset warm-overhead-flash -o relit.png                  # depth from Depth Anything 3\n  \
 pixl relight photo.jpg --depth depth.exr --preset cool-side-flash -o relit.png --keep steps/\n  \
-pixl relight photo.jpg --depth depth.exr --light '--type spot --from left --elevation 30' -o relit.png\n  \
+pixl relight photo.jpg --depth depth.exr --light '--type spot --from left' -o relit.png\n  \
 pixl relight photo.jpg --depth depth.exr --light '--at-pixel 640,300' --light '--type sun --azimuth 40 --elevation 50' -o relit.png\n  \
 pixl relight photo.jpg --depth depth.exr --scene lights.toml -o relit.png\n  \
 pixl relight --source photo.png --intrinsics ct.exr --weights model.safetensors --out relit.png\n\n\
