@@ -54,17 +54,32 @@ impl ExrChannels {
     }
 }
 
-/// Reads every channel of every part of an EXR file.
+/// Reads every channel of every part of an EXR file. The file is streamed, not read into memory
+/// first, and the decoded channels are moved into the result, not copied: the peak is about the
+/// decoded samples once.
 pub fn read_exr_channels(path: &Path) -> Result<ExrChannels> {
     if !path.exists() {
         return Err(CoreError::NotFound { path: path.to_owned() });
     }
-    let bytes = std::fs::read(path).map_err(|e| CoreError::io(path, e))?;
-    read_exr_channels_from_bytes(&bytes, path)
+    let open = || {
+        std::fs::File::open(path)
+            .map(std::io::BufReader::new)
+            .map_err(|e| CoreError::io(path, e))
+    };
+    read_exr_channels_with(open, path)
 }
 
 /// Reads every channel of every part of an in-memory EXR file; `path` only names it in errors.
 pub fn read_exr_channels_from_bytes(bytes: &[u8], path: &Path) -> Result<ExrChannels> {
+    read_exr_channels_with(|| Ok(std::io::Cursor::new(bytes)), path)
+}
+
+/// The reader behind both: `open` gives a fresh reader at the start of the file (once for the
+/// header check, once for the pixels).
+fn read_exr_channels_with<R: std::io::Read + std::io::Seek>(
+    open: impl Fn() -> Result<R>,
+    path: &Path,
+) -> Result<ExrChannels> {
     use exr::prelude::*;
     let decode = |e: exr::error::Error| CoreError::Decode {
         path: path.to_owned(),
@@ -76,7 +91,7 @@ pub fn read_exr_channels_from_bytes(bytes: &[u8], path: &Path) -> Result<ExrChan
         format: "OpenEXR",
         reason,
     };
-    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(bytes), false).map_err(decode)?;
+    let meta = exr::meta::MetaData::read_from_buffered(open()?, false).map_err(decode)?;
     let Some(first) = meta.headers.first() else {
         return Err(bad("no image parts".into()));
     };
@@ -106,18 +121,21 @@ pub fn read_exr_channels_from_bytes(bytes: &[u8], path: &Path) -> Result<ExrChan
         .all_channels()
         .all_layers()
         .all_attributes()
-        .from_buffered(std::io::Cursor::new(bytes))
+        .from_buffered(open()?)
         .map_err(decode)?;
     let mut out = ExrChannels::new(w, h);
-    for layer in &image.layer_data {
+    for layer in image.layer_data {
         let prefix = layer.attributes.layer_name.as_ref().map(|t| t.to_string());
-        for ch in &layer.channel_data.list {
+        for ch in layer.channel_data.list {
             let ch_name = ch.name.to_string();
             let name = match &prefix {
                 Some(p) if !p.is_empty() && !ch_name.starts_with(&format!("{p}.")) => format!("{p}.{ch_name}"),
                 _ => ch_name,
             };
-            let data: Vec<f32> = ch.sample_data.values_as_f32().collect();
+            let data: Vec<f32> = match ch.sample_data {
+                FlatSamples::F32(v) => v,
+                other => other.values_as_f32().collect(),
+            };
             if data.len() != w * h {
                 return Err(bad(format!(
                     "channel {name} has {} samples, expected {w}x{h} (subsampled channels are not supported)",

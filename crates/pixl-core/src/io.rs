@@ -100,7 +100,8 @@ pub fn atomic_write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
-/// Reads a PNG, JPEG or EXR image with its own channel count (1–4).
+/// Reads a PNG, JPEG or EXR image with its own channel count (1–4); a PNG or JPEG upright, its
+/// EXIF orientation applied.
 pub fn read_image(path: &Path) -> Result<Image> {
     if !path.exists() {
         return Err(CoreError::NotFound { path: path.to_owned() });
@@ -192,7 +193,17 @@ fn read_ldr(path: &Path) -> Result<Image> {
     let mut limits = image::Limits::default();
     limits.max_alloc = Some((MAX_PIXELS as u64) * 16);
     reader.limits(limits);
-    let dyn_img = reader.decode().map_err(decode)?;
+    // Upright as a viewer shows it: the EXIF orientation (phone photos are often stored
+    // sideways with a rotate tag) is applied.
+    let mut decoder = reader.into_decoder().map_err(decode)?;
+    let orientation = {
+        use image::ImageDecoder;
+        decoder
+            .orientation()
+            .unwrap_or(image::metadata::Orientation::NoTransforms)
+    };
+    let mut dyn_img = image::DynamicImage::from_decoder(decoder).map_err(decode)?;
+    dyn_img.apply_orientation(orientation);
     let (w, h) = (dyn_img.width() as usize, dyn_img.height() as usize);
     use image::DynamicImage as D;
     let img = match dyn_img {
@@ -383,6 +394,48 @@ fn write_exr_image(path: &Path, img: &Image) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A JPEG stored sideways with EXIF orientation 6 ("rotate 90° clockwise to view"): an 8×4
+    /// image, left half red, right half blue, reads as 4×8 with the red half on top (the left
+    /// column becomes the top row). Without the tag it reads as stored.
+    #[test]
+    fn jpeg_exif_orientation_is_applied() {
+        let stored = image::RgbImage::from_fn(8, 4, |x, _| {
+            if x < 4 {
+                image::Rgb([255, 0, 0])
+            } else {
+                image::Rgb([0, 0, 255])
+            }
+        });
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 100)
+            .encode_image(&stored)
+            .unwrap();
+        // APP1 "Exif": little-endian TIFF header, one IFD entry: 0x0112 Orientation, SHORT, 1, 6.
+        let mut tiff = b"II*\0\x08\0\0\0".to_vec();
+        tiff.extend_from_slice(&1u16.to_le_bytes());
+        tiff.extend_from_slice(&[0x12, 0x01, 3, 0, 1, 0, 0, 0, 6, 0, 0, 0]);
+        tiff.extend_from_slice(&0u32.to_le_bytes());
+        let mut app1 = b"Exif\0\0".to_vec();
+        app1.extend_from_slice(&tiff);
+        let mut tagged = jpeg[..2].to_vec();
+        tagged.extend_from_slice(&[0xFF, 0xE1]);
+        tagged.extend_from_slice(&((app1.len() + 2) as u16).to_be_bytes());
+        tagged.extend_from_slice(&app1);
+        tagged.extend_from_slice(&jpeg[2..]);
+
+        let dir = tempfile::tempdir().unwrap();
+        let (plain, sideways) = (dir.path().join("plain.jpg"), dir.path().join("sideways.jpg"));
+        std::fs::write(&plain, &jpeg).unwrap();
+        std::fs::write(&sideways, &tagged).unwrap();
+        let a = read_rgb(&plain).unwrap();
+        assert_eq!((a.width, a.height), (8, 4));
+        let b = read_rgb(&sideways).unwrap();
+        assert_eq!((b.width, b.height), (4, 8));
+        let red = |img: &Image, x: usize, y: usize| img.get(x, y, 0) > 0.8 && img.get(x, y, 2) < 0.2;
+        assert!(red(&b, 0, 0) && red(&b, 3, 1), "top half is red");
+        assert!(!red(&b, 0, 6) && !red(&b, 3, 7), "bottom half is blue");
+    }
 
     #[test]
     fn png16_and_exr_roundtrip_exactly() {
