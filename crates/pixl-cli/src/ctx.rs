@@ -133,8 +133,9 @@ folder:ROOT      Any photos: ROOT/<scene>/*.(png|jpg|jpeg|exr), one folder per s
 synth:ROOT       A set made by `pixl synth` (ROOT/scenes.json; exact intrinsics beside every image).\n\
 Without an official split (bigtime, vidit, folder), ROOT/test.txt lists the test scenes, one per line;\n\
 if it is missing, every tenth scene in name order is a test scene. The target intrinsics of an image\n\
-are the C_T file <stem>.intrinsics.exr beside it (synth sets have them; for photos, compose them\n\
-from render passes with `pixl compose`, or write them with an external intrinsic decomposer)."
+are the C_T file <stem>.intrinsics.exr beside it (synth sets have them; for photos, write them with\n\
+`pixl prepare-targets --dataset KIND:ROOT` (Marigold-IID Lighting), or compose them from render passes\n\
+with `pixl compose`)."
     };
 }
 

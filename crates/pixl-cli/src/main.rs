@@ -66,6 +66,8 @@ enum Command {
     Blender(cmd::blender::Command),
     /// Generate a synthetic multi-illumination dataset with exact intrinsics.
     Synth(cmd::synth::Args),
+    /// Write the training targets (C_T) of a photo dataset with Marigold-IID Lighting.
+    PrepareTargets(cmd::prepare_targets::Args),
     /// Train the network.
     Train(cmd::train::Args),
     /// Evaluate a model and baselines (PSNR / SSIM / LPIPS, timing).
@@ -78,7 +80,8 @@ Lookup: --models DIR (or PIXL_MODELS_DIR), then the Hugging Face cache (HF_HUB_C
 ~/.cache/huggingface/hub), then a download; --offline (PIXL_OFFLINE=1, HF_HUB_OFFLINE=1) never downloads."
     )]
     Models(cmd::models::Command),
-    /// Estimate maps from a photo with pretrained estimators (depth: Depth Anything 3).
+    /// Estimate maps from a photo with pretrained estimators (depth: Depth Anything 3; materials and
+    /// lighting: Marigold-IID).
     #[command(
         subcommand,
         after_help = "Example:\n  pixl estimate depth photo.jpg -o depth.exr --preview depth.png"
@@ -126,6 +129,7 @@ fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
         Command::Scene(c) => cmd::scene::run(c, ctx),
         Command::Blender(c) => cmd::blender::run(c, ctx),
         Command::Synth(a) => cmd::synth::run(a, ctx),
+        Command::PrepareTargets(a) => cmd::prepare_targets::run(a, ctx),
         Command::Train(a) => cmd::train::run(a, ctx),
         Command::Eval(a) => cmd::eval::run(a, ctx),
         Command::Models(c) => cmd::models::run(c, ctx),

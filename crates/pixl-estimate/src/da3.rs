@@ -21,12 +21,12 @@
 //! tensor names ([`weights`]), f32, f16 or bf16.
 pub mod backbone;
 pub mod config;
-pub mod conv;
-pub mod fused;
+pub use crate::conv;
+pub use crate::fused;
 pub mod head;
 pub mod postprocess;
 pub mod preprocess;
-pub mod resize;
+pub use crate::resize;
 pub mod weights;
 
 pub use config::{Da3Arch, Da3Config, Da3HeadConfig, Da3NetConfig};

@@ -37,9 +37,36 @@ use std::path::{Path, PathBuf};
 /// One file of a model, relative to the repository's root (`/`-separated).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ModelFile {
+    /// The file fetched on download.
     pub path: &'static str,
+    /// Another name that serves as well when it is on disk (the f32 weights of a model whose
+    /// `path` is the `.fp16` variant, as a full `huggingface-cli download` copy holds both).
+    pub alt: Option<&'static str>,
     /// Approximate size in bytes (for messages; the download reports the exact size).
     pub approx_bytes: u64,
+}
+
+impl ModelFile {
+    const fn new(path: &'static str, approx_bytes: u64) -> Self {
+        Self {
+            path,
+            alt: None,
+            approx_bytes,
+        }
+    }
+
+    const fn or(path: &'static str, alt: &'static str, approx_bytes: u64) -> Self {
+        Self {
+            path,
+            alt: Some(alt),
+            approx_bytes,
+        }
+    }
+
+    /// Whether this file (or its alternative) is in `dir`.
+    pub fn present_in(&self, dir: &Path) -> bool {
+        is_file(&dir.join(self.path)) || self.alt.is_some_and(|a| is_file(&dir.join(a)))
+    }
 }
 
 /// A released model this crate can load.
@@ -74,15 +101,34 @@ impl ModelSpec {
 }
 
 const DA3_FILES: &[ModelFile] = &[
-    ModelFile {
-        path: "config.json",
-        approx_bytes: 1_000,
-    },
+    ModelFile::new("config.json", 1_000),
     // 0.35 B parameters in f32.
-    ModelFile {
-        path: "model.safetensors",
-        approx_bytes: 1_400_000_000,
-    },
+    ModelFile::new("model.safetensors", 1_400_000_000),
+];
+
+/// A Marigold-IID v1.1 checkpoint in the diffusers layout; the weights are fetched as their
+/// `.fp16` variants (half the download, upcast to f32 on load), the f32 files serve as well.
+const MARIGOLD_IID_FILES: &[ModelFile] = &[
+    ModelFile::new("model_index.json", 1_000),
+    ModelFile::new("scheduler/scheduler_config.json", 1_000),
+    ModelFile::new("unet/config.json", 2_000),
+    // 0.87 B parameters in f16.
+    ModelFile::or(
+        "unet/diffusion_pytorch_model.fp16.safetensors",
+        "unet/diffusion_pytorch_model.safetensors",
+        1_732_000_000,
+    ),
+    ModelFile::new("vae/config.json", 1_000),
+    ModelFile::or(
+        "vae/diffusion_pytorch_model.fp16.safetensors",
+        "vae/diffusion_pytorch_model.safetensors",
+        167_000_000,
+    ),
+    ModelFile::new("text_encoder/config.json", 1_000),
+    // Run once: the empty-prompt embedding is cached beside it.
+    ModelFile::or("text_encoder/model.fp16.safetensors", "text_encoder/model.safetensors", 681_000_000),
+    ModelFile::new("tokenizer/vocab.json", 1_060_000),
+    ModelFile::new("tokenizer/tokenizer_config.json", 1_000),
 ];
 
 /// Every model this crate knows, by name.
@@ -104,6 +150,24 @@ pub const REGISTRY: &[ModelSpec] = &[
         licence: "Apache-2.0",
         licence_url: "https://huggingface.co/depth-anything/DA3MONO-LARGE",
         purpose: "Depth Anything 3 monocular: single-image relative depth (up to scale) and a sky mask",
+    },
+    ModelSpec {
+        name: "marigold-appearance",
+        repo: "prs-eth/marigold-iid-appearance-v1-1",
+        revision: "main",
+        files: MARIGOLD_IID_FILES,
+        licence: "OpenRAIL++-M",
+        licence_url: "https://huggingface.co/prs-eth/marigold-iid-appearance-v1-1",
+        purpose: "Marigold-IID Appearance: albedo (sRGB), roughness and metallicity of a photo's materials",
+    },
+    ModelSpec {
+        name: "marigold-lighting",
+        repo: "prs-eth/marigold-iid-lighting-v1-1",
+        revision: "main",
+        files: MARIGOLD_IID_FILES,
+        licence: "OpenRAIL++-M",
+        licence_url: "https://huggingface.co/prs-eth/marigold-iid-lighting-v1-1",
+        purpose: "Marigold-IID Lighting: albedo, diffuse shading and non-diffuse residual of a photo (linear)",
     },
 ];
 
@@ -334,7 +398,7 @@ impl Hub {
             if own.is_dir() {
                 for f in spec.files {
                     let path = own.join(f.path);
-                    if !is_file(&path) {
+                    if !f.present_in(&own) {
                         return Err(HubError::MissingFile {
                             model: spec.name.to_string(),
                             dir: own.clone(),
@@ -501,7 +565,7 @@ fn read_ref(cache: &Path, spec: &ModelSpec) -> Result<Option<String>, HubError> 
 }
 
 fn has_all(dir: &Path, spec: &ModelSpec) -> bool {
-    spec.files.iter().all(|f| is_file(&dir.join(f.path)))
+    spec.files.iter().all(|f| f.present_in(dir))
 }
 
 /// The snapshot of `spec` in the Hugging Face cache `cache` that holds every file:
@@ -544,7 +608,7 @@ fn missing_in_current_snapshot(cache: &Path, spec: &ModelSpec) -> Vec<ModelFile>
         .map(|c| cache.join(spec.cache_folder()).join("snapshots").join(c));
     spec.files
         .iter()
-        .filter(|f| dir.as_ref().is_none_or(|d| !is_file(&d.join(f.path))))
+        .filter(|f| dir.as_ref().is_none_or(|d| !f.present_in(d)))
         .copied()
         .collect()
 }

@@ -3,7 +3,7 @@
 //! - [`Identity`]: the prediction is the source photograph itself (what "no relighting" scores).
 //! - [`Compose`]: the prediction is the target intrinsics recomposed, `A ⊙ S + R` of C_T (paper
 //!   eq. 1), tonemapped like the targets: targets are sRGB in [0, 1] (PNG/JPEG as stored, EXR clipped
-//!   to [0, 1] and sRGB-encoded by `pixl_train::data::load_image`), so the linear recomposition is
+//!   to [0, 1] and sRGB-encoded by `pixl_data::load_image`), so the linear recomposition is
 //!   clipped to [0, 1] and sRGB-encoded ([`pixl_core::image::linear_to_srgb`]). This is what the
 //!   conditioning alone explains, without the source.
 //!   `compose-reinhard` ([`ComposeTonemap::Reinhard`]) shows the recomposition with Reinhard

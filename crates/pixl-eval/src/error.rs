@@ -9,11 +9,13 @@ pub enum EvalError {
     Metric(#[from] crate::metrics::MetricError),
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
-    // Foreign errors are boxed: they are large and would make every `Result` here large.
+    /// Opening the dataset, reading an image or its target intrinsics. (Not boxed: it is about
+    /// the size of the inline `Pair` variant.)
+    #[error(transparent)]
+    Data(#[from] pixl_data::DataError),
+    // Other foreign errors are boxed: they are large and would make every `Result` here large.
     #[error(transparent)]
     Core(Box<pixl_core::CoreError>),
-    #[error(transparent)]
-    Data(Box<pixl_train::TrainError>),
     #[error(transparent)]
     Checkpoint(Box<pixl_model::CheckpointError>),
     #[error(transparent)]
@@ -46,7 +48,6 @@ macro_rules! boxed_from {
 }
 boxed_from!(
     Core: pixl_core::CoreError,
-    Data: pixl_train::TrainError,
     Checkpoint: pixl_model::CheckpointError,
     Lpips: crate::lpips::LpipsError
 );

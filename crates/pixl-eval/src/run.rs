@@ -13,8 +13,8 @@ use crate::error::{EvalError, Result};
 use crate::lpips::Lpips;
 use crate::metrics::{psnr, scale_correct, ssim};
 use crate::timing::{Timing, DEFAULT_RUNS, DEFAULT_WARMUPS};
+use pixl_data::{load_image, load_intrinsics, Dataset, ImageEntry};
 use pixl_intrinsics::ct::Ct;
-use pixl_train::data::{load_image, load_intrinsics, Dataset, ImageEntry};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 

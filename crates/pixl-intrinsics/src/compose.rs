@@ -312,6 +312,47 @@ pub struct Composed {
     pub sanitized: usize,
 }
 
+/// The joint p98 rescale of App. B on S and R (finite values ≥ 0): τ = max(p98(S), p98(R), ε),
+/// then `v ← clip(v, 0, τ)/τ` in both. Returns τ.
+pub fn rescale_joint(s: &mut [f32], r: &mut [f32]) -> f32 {
+    let (ps, pr) = rayon::join(
+        || percentile_nonneg(s, RESCALE_PERCENTILE),
+        || percentile_nonneg(r, RESCALE_PERCENTILE),
+    );
+    let tau = ps.max(pr).max(TAU_EPS);
+    let inv = 1.0 / tau;
+    s.par_iter_mut()
+        .chain(r.par_iter_mut())
+        .for_each(|v| *v = v.clamp(0.0, tau) * inv);
+    tau
+}
+
+/// C_T from an estimated decomposition (linear albedo, diffuse shading and non-diffuse
+/// residual, e.g. Marigold-IID-Lighting's), by the same rule as [`compose`]: A clipped to [0, 1],
+/// S and R made finite and ≥ 0 (NaN → 0), then the joint p98 rescale. Returns C_T and τ.
+pub fn ct_from_decomposition(albedo: &Image, shading: &Image, residual: &Image) -> Result<(Ct, f32)> {
+    let (w, h) = (albedo.width, albedo.height);
+    for (name, img) in [("albedo", albedo), ("shading", shading), ("residual", residual)] {
+        if (img.width, img.height, img.channels) != (w, h, 3) {
+            return Err(IntrinsicsError::Core(CoreError::Invalid(format!(
+                "{name} is {}x{}x{}, expected {w}x{h}x3",
+                img.width, img.height, img.channels
+            ))));
+        }
+    }
+    let clean = |v: f32| if v.is_finite() { v.max(0.0) } else { 0.0 };
+    let a: Vec<f32> = albedo.data.iter().map(|&v| clean(v).min(1.0)).collect();
+    let mut s: Vec<f32> = shading.data.iter().map(|&v| clean(v)).collect();
+    let mut r: Vec<f32> = residual.data.iter().map(|&v| clean(v)).collect();
+    let tau = rescale_joint(&mut s, &mut r);
+    let ct = Ct::new(
+        Image::from_vec(w, h, 3, a)?,
+        Image::from_vec(w, h, 3, s)?,
+        Image::from_vec(w, h, 3, r)?,
+    )?;
+    Ok((ct, tau))
+}
+
 /// Count and first index of the non-finite samples of a buffer.
 fn non_finite(data: &[f32]) -> (usize, Option<usize>) {
     data.par_chunks(CHUNK)
@@ -412,20 +453,7 @@ pub fn compose(set: &PassSet, opts: &ComposeOptions) -> Result<Composed> {
         compose_kernel::<true>(&src, &mut a, &mut s, &mut r);
     }
 
-    let tau = if opts.rescale {
-        let (ps, pr) = rayon::join(
-            || percentile_nonneg(&s, RESCALE_PERCENTILE),
-            || percentile_nonneg(&r, RESCALE_PERCENTILE),
-        );
-        let tau = ps.max(pr).max(TAU_EPS);
-        let inv = 1.0 / tau;
-        s.par_iter_mut()
-            .chain(r.par_iter_mut())
-            .for_each(|v| *v = v.clamp(0.0, tau) * inv);
-        Some(tau)
-    } else {
-        None
-    };
+    let tau = opts.rescale.then(|| rescale_joint(&mut s, &mut r));
     let (w, h) = (set.width, set.height);
     let ct = Ct::new(
         Image::from_vec(w, h, 3, a)?,

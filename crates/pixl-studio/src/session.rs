@@ -326,12 +326,23 @@ impl Studio {
             .into_dimensions()
             .map_err(|e| StudioError::BadRequest(format!("{name}: cannot read the image header: {e}")))?;
         self.check_pixels(name, w as usize, h as usize)?;
-        let img = image::ImageReader::new(std::io::Cursor::new(bytes))
+        let decode = |e: image::ImageError| StudioError::BadRequest(format!("{name}: cannot decode: {e}"));
+        let mut decoder = image::ImageReader::new(std::io::Cursor::new(bytes))
             .with_guessed_format()
             .map_err(|e| StudioError::BadRequest(format!("{name}: cannot read: {e}")))?
-            .decode()
-            .map_err(|e| StudioError::BadRequest(format!("{name}: cannot decode: {e}")))?;
+            .into_decoder()
+            .map_err(decode)?;
+        // Upright as a viewer shows it (phone photos are often stored sideways with a tag).
+        let orientation = {
+            use image::ImageDecoder;
+            decoder
+                .orientation()
+                .unwrap_or(image::metadata::Orientation::NoTransforms)
+        };
+        let mut img = image::DynamicImage::from_decoder(decoder).map_err(decode)?;
+        img.apply_orientation(orientation);
         let rgb = img.to_rgb32f();
+        let (w, h) = rgb.dimensions();
         Ok(Image::from_vec(w as usize, h as usize, 3, rgb.into_raw())?)
     }
 

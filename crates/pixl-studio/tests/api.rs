@@ -464,3 +464,35 @@ fn a_scene_file_opens_with_its_lights() {
         })
     );
 }
+
+/// A JPEG of `w`×`h` stored pixels tagged with EXIF orientation 6 ("rotate 90° clockwise to
+/// view"): viewers show it `h`×`w`.
+fn sideways_jpeg(w: u32, h: u32) -> Vec<u8> {
+    let img = image::RgbImage::from_fn(w, h, |x, _| image::Rgb([(255 * x / w) as u8, 90, 140]));
+    let mut jpeg = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 95)
+        .encode_image(&img)
+        .unwrap();
+    // APP1 "Exif": little-endian TIFF header, one IFD entry: 0x0112 Orientation, SHORT, 1, 6.
+    let mut app1 = b"Exif\0\0II*\0\x08\0\0\0".to_vec();
+    app1.extend_from_slice(&1u16.to_le_bytes());
+    app1.extend_from_slice(&[0x12, 0x01, 3, 0, 1, 0, 0, 0, 6, 0, 0, 0]);
+    app1.extend_from_slice(&0u32.to_le_bytes());
+    let mut out = jpeg[..2].to_vec();
+    out.extend_from_slice(&[0xFF, 0xE1]);
+    out.extend_from_slice(&((app1.len() + 2) as u16).to_be_bytes());
+    out.extend_from_slice(&app1);
+    out.extend_from_slice(&jpeg[2..]);
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_sideways_phone_photo_is_shown_upright() {
+    let out = tempfile::tempdir().unwrap();
+    let studio = Studio::new(small_config(out.path())).unwrap();
+    let router = pixl_studio::router(studio);
+    let (s, body) = call(&router, "POST", "/api/photo?name=phone.jpg", sideways_jpeg(80, 60)).await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
+    let v: Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!((v["photo"]["width"].clone(), v["photo"]["height"].clone()), (json!(60), json!(80)));
+}

@@ -6,7 +6,7 @@
 //! init_seed = 0
 //! init_weights = "assets/demo-weights/pixl-tiny-synth.safetensors"   # optional: fine-tune from these
 //! [data]
-//! dataset = "synth:data/synth"   # see pixl_train::data::open
+//! dataset = "synth:data/synth"   # see pixl_data::open
 //! split = "train"
 //! cache = true                   # keep decoded images in memory
 //! [data.sampler]
@@ -28,10 +28,11 @@
 //! out_dir = "runs/tiny"
 //! steps = 200000
 //! ```
-use crate::data::{SamplerConfig, Split};
 use crate::error::{Result, TrainError};
 use crate::optim::{AdamWConfig, LrSchedule};
 use crate::precision::Precision;
+use crate::sampler::SamplerConfig;
+use pixl_data::Split;
 use std::path::{Path, PathBuf};
 
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -9,16 +9,9 @@ pub enum TrainError {
     Core(#[from] pixl_core::CoreError),
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
-    #[error("dataset spec {spec:?}: {reason}")]
-    Spec { spec: String, reason: String },
-    #[error("dataset {root}: {reason}")]
-    Dataset { root: PathBuf, reason: String },
-    #[error(
-        "{image}: no target intrinsics C_T: expected the cached file {expected} beside the image. \
-         Produce it with `pixl compose` from render passes, or with an external intrinsic decomposer \
-         (e.g. Marigold-IID-Lighting) writing a C_T EXR (`pixl intrinsics` describes the format)"
-    )]
-    MissingIntrinsics { image: PathBuf, expected: PathBuf },
+    /// Opening a dataset, reading its images or their target intrinsics.
+    #[error(transparent)]
+    Data(#[from] pixl_data::DataError),
     #[error("{path}: {reason}")]
     File { path: PathBuf, reason: String },
     #[error("invalid configuration: {0}")]

@@ -10,13 +10,14 @@
 //! `pixl compose`, App. B, p98 rescale), and written beside the image as
 //! `<scene>/light_<k>.intrinsics.exr`; the image `<scene>/light_<k>.png` is the `Combined` pass
 //! shown with the display convention (`Film::combined_srgb`: Reinhard, auto-exposure, sRGB).
-//! `scenes.json` lists every scene, its split and its images ([`crate::data::Synth`] reads it).
+//! `scenes.json` lists every scene, its split and its images ([`pixl_data::Synth`] reads it;
+//! [`pixl_data::folder::SynthManifest`] is its format).
 //!
 //! With `coarse` (`pixl synth --coarse`), every scene also gets the C_T of the paper's inference
 //! setting for each pair `i → j = i + 1 (mod lightings)` (the evaluation pairs): the coarse
 //! reconstruction of image `i` alone (its Depth pass → mesh, DiffCol → albedo texture, one
 //! estimated material; [`pixl_render::reconstruct::coarse_scene`]) rendered under lighting `j`
-//! and composed — `light_<j>.from_light_<i>.intrinsics.exr` ([`coarse_ct_path`]), beside that
+//! and composed — `light_<j>.from_light_<i>.intrinsics.exr` ([`pixl_data::coarse_ct_path`]), beside that
 //! render shown like the images (`….path_traced.png`). `pixl eval --ct coarse` reads those of
 //! the test scenes; training can condition on those of the train scenes
 //! (`[data.sampler] coarse_ct`, `coarse_pair_share`). With `coarse_albedo = photo` the
@@ -25,11 +26,11 @@
 //!
 //! Everything is a pure function of `(seed, scene index, lighting index)`: same seed, same set.
 //! A failed or interrupted [`generate`] leaves nothing it created behind.
-use crate::data::folder::{SynthImageRecord, SynthManifest, SynthSceneRecord, MANIFEST};
-use crate::data::Split;
 use crate::error::{Result, TrainError};
 use pixl_core::output::Provisional;
 use pixl_core::{Image, Rng};
+use pixl_data::folder::{CoarseAlbedo, SynthImageRecord, SynthManifest, SynthSceneRecord, MANIFEST};
+use pixl_data::{coarse_ct_path, Split};
 use pixl_intrinsics::compose::{compose, ComposeOptions, PassSet};
 use pixl_render::scene::AreaShape;
 use pixl_render::{Camera, Color, Light, Material, Object, RenderOptions, Scene, Shape, Transform, World};
@@ -50,18 +51,6 @@ pub struct SynthOptions {
     pub coarse: bool,
     /// The coarse reconstruction's albedo texture.
     pub coarse_albedo: CoarseAlbedo,
-}
-
-/// Where the coarse reconstruction of `pixl synth --coarse` takes its albedo texture from.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum CoarseAlbedo {
-    /// The source render's `DiffCol` pass: a perfect albedo estimator.
-    #[default]
-    Diffcol,
-    /// The source image itself (`pixl reconstruct` without `--albedo`): no estimator, the source's
-    /// shading and shadows stay in the texture.
-    Photo,
 }
 
 impl Default for SynthOptions {
@@ -306,18 +295,6 @@ pub fn draw_lighting(opts: &SynthOptions, index: usize, k: usize) -> (Vec<Light>
         ..Default::default()
     };
     (lights, world, kinds.join("+"))
-}
-
-/// Where `pixl synth --coarse` writes the C_T of relighting `source` to the lighting of
-/// `target` (both image paths of one scene) in the inference setting:
-/// `<target stem>.from_<source stem>.intrinsics.exr` beside the target.
-pub fn coarse_ct_path(source: &Path, target: &Path) -> PathBuf {
-    let stem = |p: &Path| {
-        p.file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_default()
-    };
-    target.with_file_name(format!("{}.from_{}.intrinsics.exr", stem(target), stem(source)))
 }
 
 /// Renders and composes one lighting; writes the PNG and the C_T EXR; returns the passes.

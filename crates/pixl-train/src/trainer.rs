@@ -12,17 +12,17 @@
 //! `[optim] checkpoint = true` recomputes every encoder/trunk block in the backward pass
 //! ([`crate::recompute`]); same loss, same gradients up to summation order.
 use crate::config::TrainConfig;
-use crate::data::sampler::{DiskLoader, Loader, Sample, Sampler};
-use crate::data::{self, SceneEntry};
 use crate::error::{Result, TrainError};
 use crate::loss::Perceptual;
 use crate::optim::{clip_global_norm, AdamW, LrSchedule};
 use crate::precision::{compute_model, Precision};
 use crate::recompute;
+use crate::sampler::{DiskLoader, Loader, Sample, Sampler};
 use crate::state::{self, Meta, State, MODEL_FILE, STATE_FILE};
 use candle_core::{Device, Tensor, Var};
 use candle_nn::VarMap;
 use pixl_core::{Image, Rng};
+use pixl_data::SceneEntry;
 use pixl_model::{Config, PixlRelight};
 use std::collections::BTreeMap;
 use std::io::Write;
@@ -96,7 +96,7 @@ impl Trainer {
     /// A fresh run over the dataset named in `cfg`, read from disk.
     pub fn new(cfg: TrainConfig, device: &Device) -> Result<Self> {
         cfg.validate()?;
-        let ds = data::open(&cfg.data.dataset, cfg.data.split)?;
+        let ds = pixl_data::open(&cfg.data.dataset, cfg.data.split)?;
         let loader = Box::new(DiskLoader::new(cfg.data.cache));
         Self::with_data(cfg, ds.scenes().to_vec(), loader, device)
     }

@@ -184,7 +184,7 @@ fn checkpointed_training_run_matches_plain() {
     let run = |out: &str, checkpoint: bool| -> Vec<f32> {
         let mut cfg = TrainConfig::default();
         cfg.data.dataset = format!("folder:{}", data.display());
-        cfg.data.split = pixl_train::data::Split::All;
+        cfg.data.split = pixl_data::Split::All;
         cfg.data.sampler.long_side = 32;
         cfg.loss.perceptual_weight = 0.0;
         cfg.optim.batch_size = 2;

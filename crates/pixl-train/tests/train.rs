@@ -69,7 +69,7 @@ fn weight_decay_exemptions() {
 fn small_config(root: &Path, out: &Path) -> TrainConfig {
     let mut cfg = TrainConfig::default();
     cfg.data.dataset = format!("folder:{}", root.display());
-    cfg.data.split = pixl_train::data::Split::All;
+    cfg.data.split = pixl_data::Split::All;
     cfg.data.sampler.long_side = 32;
     cfg.loss.perceptual_weight = 0.0;
     cfg.optim.batch_size = 2;

@@ -1,5 +1,9 @@
 //! `pixl estimate depth`: a photo → a depth map with Depth Anything 3 (paper §3.4), written as a
 //! single-channel OpenEXR (channel `Z`) that `pixl reconstruct --depth` reads.
+//! `pixl estimate materials`: a photo → albedo, roughness and metallic maps with
+//! Marigold-IID Appearance (§3.4 materials), the textures `pixl reconstruct` takes.
+//! `pixl estimate lighting`: a photo → its own C_T (albedo, diffuse shading, non-diffuse
+//! residual) with Marigold-IID Lighting (§3.3 training targets), rescaled like `pixl compose`.
 //!
 //! - **Model**: `da3-metric` (default; depth in metres, scaled by the focal length) or `da3-mono`
 //!   (relative depth, up to scale: reconstruct it with `--depth-kind relative`). Weights: see
@@ -11,6 +15,7 @@
 //! - **Outputs** are checked before any work (extension, folder exists, none is the photo, none
 //!   repeats), each written atomically.
 use super::exif::{photo_focal, Focal};
+use super::iid::{self, IidArgs};
 use super::models::WeightsArgs;
 use crate::Ctx;
 use anyhow::{bail, Context};
@@ -18,6 +23,7 @@ use pixl_core::output::check_output;
 use pixl_core::Image;
 use pixl_estimate::da3::{Da3, Da3Options, Da3Variant, DepthEstimate};
 use pixl_estimate::hub::{self, Resolved};
+use pixl_estimate::marigold::{IidPrediction, IidVariant};
 use std::path::{Path, PathBuf};
 
 /// Smallest photo side the estimators accept (one 14-pixel ViT patch).
@@ -33,6 +39,24 @@ Then: pixl reconstruct --image photo.jpg --depth depth.exr -o scene/ (metric), o
 --depth-range NEAR,FAR for da3-mono.\nSky pixels are written as depth 0 (missing): they get no mesh."
     )]
     Depth(DepthArgs),
+    /// Albedo, roughness and metallic maps of a photo with Marigold-IID Appearance.
+    #[command(
+        after_help = "Examples:\n  pixl estimate materials photo.jpg -o materials/\n  \
+pixl estimate materials photo.jpg -o materials/ --res 512 --ensemble 3 --json\n\n\
+Writes albedo.exr (linear), albedo.png (sRGB), roughness.exr and metallic.exr into the folder \
+(created if missing; must be empty unless --force).\nThen: pixl reconstruct --image photo.jpg --albedo materials/albedo.png \
+--roughness materials/roughness.exr --metallic materials/metallic.exr -o scene/ (or just --materials marigold).\n\
+On a CPU one photo takes minutes at 768 px (the time is shown before it starts)."
+    )]
+    Materials(MaterialsArgs),
+    /// The photo's own C_T (albedo, diffuse shading, residual) with Marigold-IID Lighting.
+    #[command(
+        after_help = "Examples:\n  pixl estimate lighting photo.jpg -o photo.intrinsics.exr\n  \
+pixl estimate lighting photo.jpg -o photo.intrinsics.exr --res 512 && pixl intrinsics preview photo.intrinsics.exr -o ct.png\n\n\
+The file has the channels `pixl compose` writes (albedo/shading/residual .R .G .B); shading and residual share the \
+p98 rescale of App. B. For a whole dataset use `pixl prepare-targets`."
+    )]
+    Lighting(LightingArgs),
 }
 
 /// The depth estimators.
@@ -96,10 +120,194 @@ pub struct DepthArgs {
     pub weights: WeightsArgs,
 }
 
+#[derive(clap::Args, Debug)]
+pub struct MaterialsArgs {
+    /// The photo (PNG/JPEG/EXR).
+    pub photo: PathBuf,
+    /// Output folder (created if missing).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+    /// Allow a non-empty output folder (the four maps in it are replaced).
+    #[arg(long)]
+    pub force: bool,
+    #[command(flatten)]
+    pub iid: IidArgs,
+    /// Device: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Print a JSON summary.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub weights: WeightsArgs,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct LightingArgs {
+    /// The photo (PNG/JPEG/EXR).
+    pub photo: PathBuf,
+    /// Output C_T file (.exr).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub iid: IidArgs,
+    /// Device: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Print a JSON summary.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub weights: WeightsArgs,
+}
+
 pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
     match command {
         Command::Depth(a) => depth(a, ctx),
+        Command::Materials(a) => materials(a, ctx),
+        Command::Lighting(a) => lighting(a, ctx),
     }
+}
+
+/// The files `pixl estimate materials` writes.
+pub const MATERIAL_FILES: [&str; 4] = ["albedo.exr", "albedo.png", "roughness.exr", "metallic.exr"];
+
+/// Estimated materials at the photo's size: linear albedo (RGB), roughness and metallic (1 channel).
+pub struct Materials {
+    pub albedo_linear: Image,
+    pub roughness: Image,
+    pub metallic: Image,
+}
+
+impl Materials {
+    /// From an Appearance prediction: albedo is sRGB-encoded (decoded here), the material map
+    /// holds roughness in R and metallicity in G.
+    pub fn from_prediction(p: &IidPrediction) -> anyhow::Result<Self> {
+        let albedo = p.get("albedo").context("the prediction has no albedo")?;
+        let material = p.get("material").context("the prediction has no material map")?;
+        let (w, h) = (albedo.width, albedo.height);
+        Ok(Self {
+            albedo_linear: albedo.map(|v| pixl_core::image::srgb_to_linear(v.clamp(0.0, 1.0))),
+            roughness: Image::from_fn(w, h, 1, |x, y, _| material.get(x, y, 0).clamp(0.0, 1.0)),
+            metallic: Image::from_fn(w, h, 1, |x, y, _| material.get(x, y, 1).clamp(0.0, 1.0)),
+        })
+    }
+}
+
+fn mean(img: &Image) -> f64 {
+    img.data.iter().map(|&v| v as f64).sum::<f64>() / img.data.len().max(1) as f64
+}
+
+fn materials(args: MaterialsArgs, ctx: &Ctx) -> anyhow::Result<()> {
+    let ctx = &ctx.for_json(args.json);
+    pixl_core::output::check_output_dir(&args.out, args.force, &MATERIAL_FILES, &[&args.photo])?;
+    let photo = read_photo(&args.photo)?;
+    let (m, resolved) = iid::load(IidVariant::Appearance, &args.device, &args.weights, ctx)?;
+    let pred = iid::run(&m, &photo, &args.iid, "materials", ctx)?;
+    let mats = Materials::from_prediction(&pred)?;
+    let mut created = pixl_core::output::Provisional::new();
+    created.create_dir_all(&args.out)?;
+    let out = |n: &str| args.out.join(n);
+    pixl_core::io::write_image(&out("albedo.exr"), &mats.albedo_linear)?;
+    let srgb = pred.get("albedo").context("the prediction has no albedo")?;
+    pixl_core::io::write_png(&out("albedo.png"), srgb, pixl_core::io::PngDepth::Eight)?;
+    pixl_core::io::write_image(&out("roughness.exr"), &mats.roughness)?;
+    pixl_core::io::write_image(&out("metallic.exr"), &mats.metallic)?;
+    created.keep();
+    let (w, h) = (photo.width, photo.height);
+    if args.json {
+        return ctx.print_json(&serde_json::json!({
+            "photo": args.photo.display().to_string(),
+            "out": args.out.display().to_string(),
+            "files": MATERIAL_FILES,
+            "width": w,
+            "height": h,
+            "processed_size": [pred.processed_size.0, pred.processed_size.1],
+            "steps": pred.steps,
+            "ensemble": pred.ensemble,
+            "seed": args.iid.seed,
+            "mean_albedo_linear": mean(&mats.albedo_linear),
+            "mean_roughness": mean(&mats.roughness),
+            "mean_metallic": mean(&mats.metallic),
+            "weights": weights_json(&resolved),
+        }));
+    }
+    ctx.say(format!(
+        "marigold-appearance: {w}x{h} at {}x{}, {} steps x {}: mean albedo {:.3} (linear), roughness {:.3}, metallic {:.3} -> {}",
+        pred.processed_size.0,
+        pred.processed_size.1,
+        pred.steps,
+        pred.ensemble,
+        mean(&mats.albedo_linear),
+        mean(&mats.roughness),
+        mean(&mats.metallic),
+        args.out.display()
+    ));
+    ctx.say(format!(
+        "weights: {} ({}), from {}",
+        resolved.spec.repo, resolved.spec.licence, resolved.source
+    ));
+    Ok(())
+}
+
+/// C_T of a photo from a Lighting prediction (A, S, R linear; App. B's rescale).
+pub fn ct_from_lighting(p: &IidPrediction) -> anyhow::Result<(pixl_intrinsics::ct::Ct, f32)> {
+    let get = |n: &str| p.get(n).with_context(|| format!("the prediction has no {n} map"));
+    Ok(pixl_intrinsics::compose::ct_from_decomposition(
+        get("albedo")?,
+        get("shading")?,
+        get("residual")?,
+    )?)
+}
+
+fn lighting(args: LightingArgs, ctx: &Ctx) -> anyhow::Result<()> {
+    let ctx = &ctx.for_json(args.json);
+    check_output(&args.out, &["exr"], &[&args.photo])?;
+    let photo = read_photo(&args.photo)?;
+    let (m, resolved) = iid::load(IidVariant::Lighting, &args.device, &args.weights, ctx)?;
+    let pred = iid::run(&m, &photo, &args.iid, "lighting", ctx)?;
+    let (ct, tau) = ct_from_lighting(&pred)?;
+    pixl_intrinsics::ct::write_ct(&args.out, &ct)?;
+    let [a, s, r] = ct.groups();
+    if args.json {
+        return ctx.print_json(&serde_json::json!({
+            "photo": args.photo.display().to_string(),
+            "out": args.out.display().to_string(),
+            "width": photo.width,
+            "height": photo.height,
+            "processed_size": [pred.processed_size.0, pred.processed_size.1],
+            "steps": pred.steps,
+            "ensemble": pred.ensemble,
+            "seed": args.iid.seed,
+            "tau": tau,
+            "mean_albedo": mean(a),
+            "mean_shading": mean(s),
+            "mean_residual": mean(r),
+            "weights": weights_json(&resolved),
+        }));
+    }
+    ctx.say(format!(
+        "marigold-lighting: {}x{}, mean albedo {:.3}, shading {:.3}, residual {:.3} (tau {tau:.4}) -> {}",
+        photo.width,
+        photo.height,
+        mean(a),
+        mean(s),
+        mean(r),
+        args.out.display()
+    ));
+    ctx.say(format!(
+        "weights: {} ({}), from {}",
+        resolved.spec.repo, resolved.spec.licence, resolved.source
+    ));
+    Ok(())
+}
+
+fn weights_json(r: &Resolved) -> serde_json::Value {
+    serde_json::json!({
+        "dir": r.dir.display().to_string(),
+        "source": r.source.to_string(),
+        "licence": r.spec.licence,
+    })
 }
 
 /// Reads a photo for an estimator: RGB, finite, at least [`MIN_SIDE`] on each side, sRGB-encoded

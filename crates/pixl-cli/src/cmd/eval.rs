@@ -4,8 +4,8 @@
 use crate::Ctx;
 use anyhow::Context as _;
 use candle_core::{DType, Device};
+use pixl_data::Split;
 use pixl_eval::{baselines::Method, EvalOptions, Lpips, ModelMethod};
-use pixl_train::data::Split;
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
@@ -104,7 +104,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         &inputs,
     )?;
     let split: Split = args.split.parse()?;
-    let dataset = pixl_train::data::open(&args.dataset, split)?;
+    let dataset = pixl_data::open(&args.dataset, split)?;
     let mut pairs = match &args.pairs {
         Some(path) => pixl_eval::read_pairs(path, dataset.as_ref())?,
         None => pixl_eval::default_pairs(dataset.as_ref()),
@@ -114,7 +114,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     }
     if args.ct == "coarse" {
         for p in &mut pairs {
-            let path = pixl_train::synth::coarse_ct_path(&p.source.image, &p.target.image);
+            let path = pixl_data::coarse_ct_path(&p.source.image, &p.target.image);
             if !path.is_file() {
                 anyhow::bail!(
                     "--ct coarse: {} is missing (pair {} → {} of scene {}); make the set with `pixl synth --coarse` \
@@ -156,10 +156,10 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         let albedo = args
             .dataset
             .strip_prefix("synth:")
-            .and_then(|root| pixl_train::data::folder::synth_coarse_albedo(std::path::Path::new(root)));
+            .and_then(|root| pixl_data::folder::synth_coarse_albedo(std::path::Path::new(root)));
         let texture = match albedo {
-            Some(pixl_train::synth::CoarseAlbedo::Diffcol) => " textured with the source's DiffCol pass",
-            Some(pixl_train::synth::CoarseAlbedo::Photo) => " textured with the source image",
+            Some(pixl_data::CoarseAlbedo::Diffcol) => " textured with the source's DiffCol pass",
+            Some(pixl_data::CoarseAlbedo::Photo) => " textured with the source image",
             None => "",
         };
         format!("{} (C_T from coarse reconstructions{texture})", args.dataset)

@@ -89,6 +89,14 @@ pub struct Args {
     /// NEAR,FAR in metres for --depth-kind relative/disparity (default 1,10 with a warning).
     #[arg(long, value_name = "NEAR,FAR", requires = "depth")]
     pub depth_range: Option<String>,
+    /// Estimate the textures from the photo: `marigold` runs Marigold-IID Appearance for the
+    /// albedo, roughness and metallic maps (minutes on a CPU; the time is shown first), so the
+    /// photo's own shading is not baked into the colour. Default: the photo is the texture.
+    #[arg(long, value_enum, conflicts_with_all = ["albedo", "roughness", "metallic"])]
+    pub materials: Option<MaterialSource>,
+    /// Longest side Marigold processes with --materials marigold (multiple of 8; default 768).
+    #[arg(long, value_name = "PX", requires = "materials")]
+    pub materials_res: Option<usize>,
     /// Albedo map (the mesh's colour texture instead of the photo).
     #[arg(long)]
     pub albedo: Option<PathBuf>,
@@ -140,11 +148,18 @@ pub struct Args {
     /// Longest side the photo is resized to for depth estimation (without --depth).
     #[arg(long, default_value_t = 504)]
     pub process_res: usize,
-    /// Device for depth estimation: cpu, or cuda[:N] (needs a build with `--features cuda`).
+    /// Device for the estimators (depth, materials): cpu, or cuda[:N] (needs a build with `--features cuda`).
     #[arg(long, default_value = "cpu")]
     pub device: String,
     #[command(flatten)]
     pub weights: super::models::WeightsArgs,
+}
+
+/// Where the mesh's material maps come from besides the flags that name files.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum MaterialSource {
+    /// Marigold-IID Appearance (albedo, roughness, metallic).
+    Marigold,
 }
 
 /// Parses `NEAR,FAR` (metres, 0 < NEAR < FAR).
@@ -398,21 +413,47 @@ more than --max-triangles {}; pass --stride 1 to keep them all",
         }
         None => None,
     };
-    let albedo = args
-        .albedo
-        .as_ref()
-        .map(|p| read_map("albedo", p, size).map(|m| (p.clone(), m)))
-        .transpose()?;
-    let roughness = args
-        .roughness
-        .as_ref()
-        .map(|p| read_map("roughness", p, size))
-        .transpose()?;
-    let metallic = args
-        .metallic
-        .as_ref()
-        .map(|p| read_map("metallic", p, size))
-        .transpose()?;
+    let (albedo, roughness, metallic) = match args.materials {
+        Some(MaterialSource::Marigold) => {
+            let rgb = super::estimate::read_photo(&args.image)?;
+            let (m, resolved) = super::iid::load(
+                pixl_estimate::marigold::IidVariant::Appearance,
+                &args.device,
+                &args.weights,
+                ctx,
+            )?;
+            let iid = super::iid::IidArgs {
+                res: args.materials_res,
+                ..Default::default()
+            };
+            let pred = super::iid::run(&m, &rgb, &iid, "materials", ctx)?;
+            let mats = super::estimate::Materials::from_prediction(&pred)?;
+            ctx.say(format!(
+                "materials from marigold-appearance ({} steps at {}x{}; weights: {} from {})",
+                pred.steps, pred.processed_size.0, pred.processed_size.1, resolved.spec.licence, resolved.source
+            ));
+            // The linear albedo is written as an sRGB texture, as an EXR albedo map would be.
+            (
+                Some((PathBuf::from("albedo.exr"), mats.albedo_linear)),
+                Some(mats.roughness),
+                Some(mats.metallic),
+            )
+        }
+        None => (
+            args.albedo
+                .as_ref()
+                .map(|p| read_map("albedo", p, size).map(|m| (p.clone(), m)))
+                .transpose()?,
+            args.roughness
+                .as_ref()
+                .map(|p| read_map("roughness", p, size))
+                .transpose()?,
+            args.metallic
+                .as_ref()
+                .map(|p| read_map("metallic", p, size))
+                .transpose()?,
+        ),
+    };
 
     let mesh = depth::depth_to_mesh(&depth_map, &intr, normals.as_ref(), &opts)?;
     if mesh.indices.is_empty() {
@@ -541,6 +582,11 @@ more than --max-triangles {}; pass --stride 1 to keep them all",
             "vertices": mesh.positions.len(),
             "triangles": mesh.num_triangles(),
             "triangles_cut": possible.saturating_sub(mesh.num_triangles()),
+            "materials": match args.materials {
+                Some(MaterialSource::Marigold) => "marigold-appearance",
+                None if args.albedo.is_some() => "maps",
+                None => "photo",
+            },
             "seconds": started.elapsed().as_secs_f64(),
         }))?;
     }

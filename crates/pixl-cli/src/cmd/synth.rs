@@ -86,8 +86,8 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         test_every: args.test_every,
         coarse: args.coarse,
         coarse_albedo: match args.coarse_albedo {
-            CoarseAlbedoArg::Diffcol => pixl_train::synth::CoarseAlbedo::Diffcol,
-            CoarseAlbedoArg::Photo => pixl_train::synth::CoarseAlbedo::Photo,
+            CoarseAlbedoArg::Diffcol => pixl_data::CoarseAlbedo::Diffcol,
+            CoarseAlbedoArg::Photo => pixl_data::CoarseAlbedo::Photo,
         },
     };
     let pb = ctx.progress((args.scenes * args.lights) as u64, "synth");
@@ -100,7 +100,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let test = manifest
         .scenes
         .iter()
-        .filter(|s| s.split == pixl_train::data::Split::Test)
+        .filter(|s| s.split == pixl_data::Split::Test)
         .count();
     let secs = t0.elapsed().as_secs_f64();
     if args.json {
@@ -113,7 +113,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "spp": args.spp,
             "seed": args.seed,
             "coarse": args.coarse,
-            "manifest": args.out.join(pixl_train::data::folder::MANIFEST).display().to_string(),
+            "manifest": args.out.join(pixl_data::folder::MANIFEST).display().to_string(),
             "seconds": secs,
         }))?;
     }
@@ -127,7 +127,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `--coarse-albedo` values (see [`pixl_train::synth::CoarseAlbedo`]).
+/// `--coarse-albedo` values (see [`pixl_data::CoarseAlbedo`]).
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CoarseAlbedoArg {
     Diffcol,

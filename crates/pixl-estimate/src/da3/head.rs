@@ -21,81 +21,11 @@
 //! The two final 3×3 convs read the same map and are evaluated as one 64-channel conv (their
 //! weights concatenated at load time), the two 1×1 convs as one block-diagonal matmul.
 use super::config::Da3Config;
-use super::conv::{conv3x3, Epilogue, Im2colWeight};
-use super::fused::{self, bias_act_channels, bias_act_rows, bias_residual_channels, Act, Vector};
+use crate::conv::Conv3x3;
+use super::fused::{self, bias_act_channels, bias_act_rows, Act, Vector};
 use super::resize::bilinear_align_corners;
-use candle_core::{Module, Result, Tensor};
-use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
-
-/// `Conv2d(cin, cout, 3, stride, padding=1)` with the bias, an optional skip connection and an
-/// activation applied in the same pass ([`super::conv`] on the CPU, candle's `Conv2d`
-/// followed by the fused ops elsewhere).
-#[derive(Clone, Debug)]
-struct Conv3x3 {
-    conv: Conv2d,
-    im2col: Im2colWeight,
-    stride: usize,
-    bias: Option<Vector>,
-}
-
-impl Conv3x3 {
-    fn new(cin: usize, cout: usize, stride: usize, bias: bool, vb: VarBuilder) -> Result<Self> {
-        let weight = vb.get((cout, cin, 3, 3), "weight")?;
-        let bias = if bias {
-            Some(Vector::new(vb.get(cout, "bias")?)?)
-        } else {
-            None
-        };
-        Self::from_parts(weight, bias, stride)
-    }
-
-    fn from_parts(weight: Tensor, bias: Option<Vector>, stride: usize) -> Result<Self> {
-        let cfg = Conv2dConfig {
-            padding: 1,
-            stride,
-            ..Default::default()
-        };
-        Ok(Self {
-            im2col: Im2colWeight::new(&weight)?,
-            conv: Conv2d::new(weight, None, cfg),
-            stride,
-            bias,
-        })
-    }
-
-    /// `act((conv(xs) + b) + residual)`.
-    fn apply(&self, xs: &Tensor, residual: Option<&Tensor>, act: Act) -> Result<Tensor> {
-        if fused::cpu_f32(xs) && residual.is_none_or(fused::cpu_f32) {
-            let skip = match residual {
-                Some(r) => Some(r.contiguous()?.flatten_all()?.to_vec1::<f32>()?),
-                None => None,
-            };
-            let epi = Epilogue {
-                bias: self.bias.as_ref().map(Vector::values),
-                residual: skip.as_deref(),
-                act,
-            };
-            return conv3x3(xs, &self.im2col, self.stride, &epi);
-        }
-        let ys = self.conv.forward(xs)?;
-        match (&self.bias, residual) {
-            (Some(b), Some(r)) => bias_residual_channels(&ys, b, r, act),
-            (Some(b), None) => bias_act_channels(&ys, b, act),
-            (None, Some(r)) => fused::add_act(&ys, r, act),
-            (None, None) if act == Act::Relu => fused::relu(&ys),
-            (None, None) => Ok(ys),
-        }
-    }
-
-    fn forward(&self, xs: &Tensor, act: Act) -> Result<Tensor> {
-        self.apply(xs, None, act)
-    }
-
-    /// `(conv(xs) + b) + residual`.
-    fn forward_residual(&self, xs: &Tensor, residual: &Tensor) -> Result<Tensor> {
-        self.apply(xs, Some(residual), Act::None)
-    }
-}
+use candle_core::{Result, Tensor};
+use candle_nn::VarBuilder;
 
 /// A 1×1 conv as a matrix product: weight `(out, in)`, bias `(out)`.
 #[derive(Clone, Debug)]

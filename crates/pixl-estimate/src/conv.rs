@@ -1,4 +1,5 @@
-//! 3×3 convolution (padding 1, stride 1 or 2) for the DPT head on the CPU: the input is copied
+//! 3×3 convolution (padding 1, stride 1 or 2) for the estimators' convolutional parts (DA3's
+//! DPT head, Marigold's VAE) on the CPU, and [`Conv3x3`], the layer that uses it: the input is copied
 //! once into a zero-padded channels-last buffer, each band of output rows is unrolled into an
 //! im2col matrix by contiguous copies of `C` floats, multiplied by the weights with one large
 //! (internally parallel) matrix product, and written back channels-first with the bias, a
@@ -7,8 +8,9 @@
 //! Same operation as `candle_nn::Conv2d` (which the head uses on other devices): weight
 //! `(O, C, 3, 3)`, `out[o, y, x] = b[o] + Σ_{c,ky,kx} w[o, c, ky, kx]·in[c, s·y + ky − 1,
 //! s·x + kx − 1]` (zero outside), output `(B, O, ⌊(H − 1)/s⌋ + 1, ⌊(W − 1)/s⌋ + 1)`.
-use super::fused::Act;
-use candle_core::{DType, Result, Tensor};
+use crate::fused::{self, bias_act_channels, bias_residual_channels, Act, Vector};
+use candle_core::{DType, Module, Result, Tensor};
+use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use rayon::prelude::*;
 
 /// Largest im2col band, in floats (about 32 MiB).
@@ -110,6 +112,76 @@ pub fn conv3x3(xs: &Tensor, w: &Im2colWeight, stride: usize, epi: &Epilogue) -> 
         }
     }
     Tensor::from_vec(out, (b, o, ho, wo), xs.device())
+}
+
+/// `Conv2d(cin, cout, 3, stride, padding=1)` with the bias, an optional skip connection and an
+/// activation applied in the same pass ([`conv3x3`] on the CPU, candle's `Conv2d`
+/// followed by the fused ops elsewhere).
+#[derive(Clone, Debug)]
+pub struct Conv3x3 {
+    conv: Conv2d,
+    im2col: Im2colWeight,
+    stride: usize,
+    bias: Option<Vector>,
+}
+
+impl Conv3x3 {
+    pub fn new(cin: usize, cout: usize, stride: usize, bias: bool, vb: VarBuilder) -> Result<Self> {
+        let weight = vb.get((cout, cin, 3, 3), "weight")?;
+        let bias = if bias {
+            Some(Vector::new(vb.get(cout, "bias")?)?)
+        } else {
+            None
+        };
+        Self::from_parts(weight, bias, stride)
+    }
+
+    pub fn from_parts(weight: Tensor, bias: Option<Vector>, stride: usize) -> Result<Self> {
+        let cfg = Conv2dConfig {
+            padding: 1,
+            stride,
+            ..Default::default()
+        };
+        Ok(Self {
+            im2col: Im2colWeight::new(&weight)?,
+            conv: Conv2d::new(weight, None, cfg),
+            stride,
+            bias,
+        })
+    }
+
+    /// `act((conv(xs) + b) + residual)`.
+    pub fn apply(&self, xs: &Tensor, residual: Option<&Tensor>, act: Act) -> Result<Tensor> {
+        if fused::cpu_f32(xs) && residual.is_none_or(fused::cpu_f32) {
+            let skip = match residual {
+                Some(r) => Some(r.contiguous()?.flatten_all()?.to_vec1::<f32>()?),
+                None => None,
+            };
+            let epi = Epilogue {
+                bias: self.bias.as_ref().map(Vector::values),
+                residual: skip.as_deref(),
+                act,
+            };
+            return conv3x3(xs, &self.im2col, self.stride, &epi);
+        }
+        let ys = self.conv.forward(xs)?;
+        match (&self.bias, residual) {
+            (Some(b), Some(r)) => bias_residual_channels(&ys, b, r, act),
+            (Some(b), None) => bias_act_channels(&ys, b, act),
+            (None, Some(r)) => fused::add_act(&ys, r, act),
+            (None, None) if act == Act::Relu => fused::relu(&ys),
+            (None, None) => Ok(ys),
+        }
+    }
+
+    pub fn forward(&self, xs: &Tensor, act: Act) -> Result<Tensor> {
+        self.apply(xs, None, act)
+    }
+
+    /// `(conv(xs) + b) + residual`.
+    pub fn forward_residual(&self, xs: &Tensor, residual: &Tensor) -> Result<Tensor> {
+        self.apply(xs, Some(residual), Act::None)
+    }
 }
 
 #[cfg(test)]

@@ -13,9 +13,12 @@
 //! All samples of one step share one output size (so they stack into a batch): the aspect and
 //! orientation are drawn per step; sizes are rounded to a multiple of `multiple` (the model's
 //! patch size) while staying within the aspect bounds.
-use super::{load_image, ImageEntry, SceneEntry};
+//!
+//! This is the training recipe, so it lives here and not in `pixl-data`: the datasets only list
+//! scenes and read files ([`pixl_data::load_image`], [`pixl_data::load_intrinsics`]).
 use crate::error::{Result, TrainError};
 use pixl_core::{Image, Rng};
+use pixl_data::{load_image, ImageEntry, SceneEntry};
 use std::collections::HashMap;
 use std::sync::Mutex;
 
@@ -40,7 +43,7 @@ pub struct SamplerConfig {
     pub flip: bool,
     /// Probability of conditioning on the *coarse-reconstruction* C_T of the drawn pair
     /// (`source → target`) instead of the target's exact one, where `pixl synth --coarse` wrote
-    /// it ([`crate::synth::coarse_ct_path`]): C_T with the artifacts of the paper's inference
+    /// it ([`pixl_data::coarse_ct_path`]): C_T with the artifacts of the paper's inference
     /// setting, a simulation the paper's recipe approximates with App. C's corruptions.
     /// 0 (default) = the paper's recipe.
     pub coarse_ct: f32,
@@ -130,7 +133,7 @@ pub trait Loader: Send + Sync {
     fn intrinsics(&self, entry: &ImageEntry) -> Result<Image>;
 }
 
-/// Reads images and C_T from disk ([`load_image`], [`super::load_intrinsics`]), optionally keeping
+/// Reads images and C_T from disk ([`load_image`], [`pixl_data::load_intrinsics`]), optionally keeping
 /// every decoded file in memory (for small data sets read over and over).
 #[derive(Default)]
 pub struct DiskLoader {
@@ -164,17 +167,17 @@ impl DiskLoader {
 
 impl Loader for DiskLoader {
     fn image(&self, entry: &ImageEntry) -> Result<Image> {
-        self.cached(&entry.image, || load_image(&entry.image))
+        self.cached(&entry.image, || Ok(load_image(&entry.image)?))
     }
     fn intrinsics(&self, entry: &ImageEntry) -> Result<Image> {
         // Keyed by the C_T file itself: one image can have several (exact, coarse). (No file
         // check here: a cache hit must not touch the disk; the load reports a missing file.)
         let key = match &entry.intrinsics {
             Some(p) => p.clone(),
-            None => super::intrinsics_path(&entry.image),
+            None => pixl_data::ct_cache_path(&entry.image),
         }
         .with_extension("ct-cache");
-        self.cached(&key, || super::load_intrinsics_image(entry))
+        self.cached(&key, || Ok(pixl_data::load_intrinsics_image(entry)?))
     }
 }
 
@@ -199,9 +202,7 @@ fn find_coarse_pairs(scenes: &[SceneEntry]) -> (Vec<Vec<(usize, usize)>>, usize)
             all += n * (n - 1);
             (0..n)
                 .flat_map(|i| (0..n).map(move |j| (i, j)))
-                .filter(|&(i, j)| {
-                    i != j && crate::synth::coarse_ct_path(&s.images[i].image, &s.images[j].image).is_file()
-                })
+                .filter(|&(i, j)| i != j && pixl_data::coarse_ct_path(&s.images[i].image, &s.images[j].image).is_file())
                 .collect()
         })
         .collect();
@@ -346,7 +347,7 @@ impl Sampler {
         // Whether the pair has a coarse C_T was looked up once, in `new` (no file check here).
         let by_ct = self.cfg.coarse_ct > 0.0 && rng.f32() < self.cfg.coarse_ct;
         let coarse = (forced.is_some() || (by_ct && coarse_pairs.contains(&(source_index, target_index))))
-            .then(|| crate::synth::coarse_ct_path(&src_e.image, &tgt_e.image));
+            .then(|| pixl_data::coarse_ct_path(&src_e.image, &tgt_e.image));
         let ct = match coarse {
             Some(path) => loader.intrinsics(&ImageEntry {
                 image: tgt_e.image.clone(),

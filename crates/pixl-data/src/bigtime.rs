@@ -1,5 +1,6 @@
 //! BigTime time-lapses: `ROOT/<scene>/data/<frame>.(png|jpg)`, or frames directly in
 //! `ROOT/<scene>/`. Masks (`*_mask.png`, `*_skymask.png`) and cached intrinsics are not frames.
+//! Scenes and frames are sorted by name (frames under `data/` first); no official split.
 use super::{default_split, entry_with_cache, is_intrinsics_file, is_ldr, keep_pairable, non_empty, sorted_dir};
 use super::{Dataset, SceneEntry, Split};
 use crate::error::Result;
@@ -23,7 +24,8 @@ fn is_frame(path: &Path) -> bool {
 }
 
 impl BigTime {
-    pub fn open(root: &Path, split: Split) -> Result<Self> {
+    /// Every scene directory under `root`, sorted by name, with its frames (possibly fewer than two).
+    pub(crate) fn scan(root: &Path) -> Result<Vec<SceneEntry>> {
         let mut scenes = Vec::new();
         for dir in sorted_dir(root)?.into_iter().filter(|p| p.is_dir()) {
             let Some(name) = dir.file_name().and_then(|n| n.to_str()).map(String::from) else {
@@ -38,7 +40,11 @@ impl BigTime {
             let images = frames.into_iter().map(entry_with_cache).collect();
             scenes.push(SceneEntry { name, images });
         }
-        let scenes = default_split(root, keep_pairable(root, scenes), split)?;
+        Ok(scenes)
+    }
+
+    pub fn open(root: &Path, split: Split) -> Result<Self> {
+        let scenes = default_split(root, keep_pairable(root, Self::scan(root)?), split)?;
         Ok(Self {
             scenes: non_empty(root, split, scenes)?,
         })

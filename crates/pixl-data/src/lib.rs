@@ -1,9 +1,11 @@
-//! Paired multi-illumination datasets (paper §3.3 "Training Data").
+//! `pixl-data`: paired multi-illumination datasets (paper §3.3 "Training Data"), read by
+//! training (`pixl-train`), evaluation (`pixl-eval`) and the CLI.
 //!
 //! A dataset is a list of *scenes*; each scene is a static view photographed (or rendered) under
-//! several lights. Training draws two distinct images of one scene ([`sampler`]).
+//! several lights. Training draws two distinct images of one scene (`pixl_train::sampler`);
+//! evaluation relights one image of a scene to the lighting of another.
 //!
-//! Specs accepted by [`open`] (`KIND:ROOT`):
+//! Specs accepted by [`open`] and [`list_images`] (`KIND:ROOT`):
 //! - `miiw:ROOT` (or `miiw@N:ROOT` for mip level `N`, default 2): `ROOT/<scene>/dir_<0..24>_mip<N>.(jpg|exr)`.
 //!   Test split: every scene whose name starts with `everett`; train: the rest.
 //! - `bigtime:ROOT`: `ROOT/<scene>/data/<frame>.(png|jpg)` or frames directly in `ROOT/<scene>/`;
@@ -17,29 +19,36 @@
 //! exists it lists the test scenes (one name a line); otherwise, over the sorted scene names, every
 //! tenth scene (index 9, 19, …) is test. Synthetic sets carry their split in `scenes.json`.
 //!
-//! Scenes are sorted by name and images within a scene by file name, so the order is
-//! deterministic. Scenes with fewer than two images cannot form a pair and are skipped (with a
-//! warning).
+//! Scenes are sorted by name and images within a scene by file name (MIIW: by light direction
+//! number), so the order is deterministic. [`open`] skips scenes with fewer than two images (they
+//! cannot form a pair; with a warning); [`scenes_all`] and [`list_images`] keep them: every image
+//! of every split, in the same order.
 //!
 //! **Target intrinsics** ([`load_intrinsics`]), in order: the entry's exact renderer intrinsics
-//! (synthetic sets), else the cached file `<image stem>.intrinsics.exr` beside the image (e.g.
-//! `scene/dir_3_mip2.jpg` → `scene/dir_3_mip2.intrinsics.exr`; any external decomposer can fill
-//! this cache), else an error saying how to produce it.
-use crate::error::{Result, TrainError};
+//! (synthetic sets), else the cached file `<image stem>.intrinsics.exr` beside the image
+//! ([`ct_cache_path`]; e.g. `scene/dir_3_mip2.jpg` → `scene/dir_3_mip2.intrinsics.exr`; any
+//! external decomposer can fill this cache), else an error saying how to produce it.
+//! `pixl synth --coarse` also writes coarse-reconstruction C_T beside a target
+//! ([`coarse_ct_path`]); every `*.intrinsics.exr` is a C_T, never an image of the dataset.
+//!
+//! Errors are [`DataError`]s; images are [`pixl_core::Image`] (sRGB RGB in [0, 1]), C_T are
+//! [`Ct`] or 9-channel HWC images `[albedo; shading; residual]`.
 use pixl_core::Image;
 use pixl_intrinsics::ct::Ct;
 use std::path::{Path, PathBuf};
 
 mod bigtime;
+pub mod error;
 pub mod folder;
 mod miiw;
-pub mod sampler;
+mod spec;
 mod vidit;
 
 pub use bigtime::BigTime;
-pub use folder::{Folder, Synth};
+pub use error::{DataError, Result};
+pub use folder::{CoarseAlbedo, Folder, Synth};
 pub use miiw::Miiw;
-pub use sampler::{Sample, Sampler, SamplerConfig};
+pub use spec::{list_images, open, scenes_all};
 pub use vidit::Vidit;
 
 /// Which scenes of a dataset.
@@ -62,15 +71,13 @@ impl Split {
 }
 
 impl std::str::FromStr for Split {
-    type Err = TrainError;
+    type Err = DataError;
     fn from_str(s: &str) -> Result<Self> {
         match s {
             "train" => Ok(Split::Train),
             "test" => Ok(Split::Test),
             "all" => Ok(Split::All),
-            _ => Err(TrainError::Config(format!(
-                "unknown split {s:?} (expected train, test or all)"
-            ))),
+            _ => Err(DataError::UnknownSplit(s.to_string())),
         }
     }
 }
@@ -96,55 +103,23 @@ pub trait Dataset: Send + Sync {
     fn scenes(&self) -> &[SceneEntry];
 }
 
-/// Opens a dataset from a `KIND:ROOT` spec (see the module docs).
-pub fn open(spec: &str, split: Split) -> Result<Box<dyn Dataset>> {
-    let bad = |reason: &str| TrainError::Spec {
-        spec: spec.to_string(),
-        reason: reason.to_string(),
-    };
-    let Some((kind, root)) = spec.split_once(':') else {
-        return Err(bad(
-            "expected KIND:ROOT with KIND one of miiw, bigtime, vidit, folder, synth",
-        ));
-    };
-    if root.is_empty() {
-        return Err(bad("empty root directory"));
-    }
-    let root = Path::new(root);
-    let (kind, opt) = match kind.split_once('@') {
-        Some((k, o)) => (k, Some(o)),
-        None => (kind, None),
-    };
-    if opt.is_some() && kind != "miiw" {
-        return Err(bad("only miiw takes an option (miiw@MIP:ROOT)"));
-    }
-    Ok(match kind {
-        "miiw" => {
-            let mip = match opt {
-                Some(o) => o
-                    .trim_start_matches("mip")
-                    .parse::<u32>()
-                    .map_err(|_| bad("mip level must be a number"))?,
-                None => miiw::DEFAULT_MIP,
-            };
-            Box::new(Miiw::open(root, split, mip)?)
-        }
-        "bigtime" => Box::new(BigTime::open(root, split)?),
-        "vidit" => Box::new(Vidit::open(root, split)?),
-        "folder" => Box::new(Folder::open(root, split)?),
-        "synth" => Box::new(Synth::open(root, split)?),
-        _ => {
-            return Err(bad(&format!(
-                "unknown dataset kind {kind:?} (expected miiw, bigtime, vidit, folder, synth)"
-            )))
-        }
-    })
-}
-
-/// The cached-intrinsics file name for an image: `<dir>/<stem>.intrinsics.exr`.
-pub fn intrinsics_path(image: &Path) -> PathBuf {
+/// Where the cached target intrinsics of an image live: `<dir>/<image stem>.intrinsics.exr`
+/// beside it (`scene/dir_3_mip2.jpg` → `scene/dir_3_mip2.intrinsics.exr`).
+pub fn ct_cache_path(image: &Path) -> PathBuf {
     let stem = image.file_stem().and_then(|s| s.to_str()).unwrap_or("image");
     image.with_file_name(format!("{stem}.intrinsics.exr"))
+}
+
+/// Where `pixl synth --coarse` writes the C_T of relighting `source` to the lighting of
+/// `target` (both image paths of one scene) in the inference setting:
+/// `<target stem>.from_<source stem>.intrinsics.exr` beside the target.
+pub fn coarse_ct_path(source: &Path, target: &Path) -> PathBuf {
+    let stem = |p: &Path| {
+        p.file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    target.with_file_name(format!("{}.from_{}.intrinsics.exr", stem(target), stem(source)))
 }
 
 /// Whether a file name is a cached C_T (`*.intrinsics.exr`), never a photograph.
@@ -166,10 +141,10 @@ pub fn load_image(path: &Path) -> Result<Image> {
 
 /// Lists the entries of a directory, sorted by file name. Missing directory → error naming it.
 pub(crate) fn sorted_dir(dir: &Path) -> Result<Vec<PathBuf>> {
-    let rd = std::fs::read_dir(dir).map_err(|e| TrainError::io(dir, e))?;
+    let rd = std::fs::read_dir(dir).map_err(|e| DataError::io(dir, e))?;
     let mut out = Vec::new();
     for entry in rd {
-        out.push(entry.map_err(|e| TrainError::io(dir, e))?.path());
+        out.push(entry.map_err(|e| DataError::io(dir, e))?.path());
     }
     out.sort();
     Ok(out)
@@ -177,7 +152,7 @@ pub(crate) fn sorted_dir(dir: &Path) -> Result<Vec<PathBuf>> {
 
 /// An entry whose intrinsics field is filled when the cached file exists.
 pub(crate) fn entry_with_cache(image: PathBuf) -> ImageEntry {
-    let cached = intrinsics_path(&image);
+    let cached = ct_cache_path(&image);
     ImageEntry {
         intrinsics: cached.is_file().then_some(cached),
         image,
@@ -189,7 +164,7 @@ pub(crate) fn entry_with_cache(image: PathBuf) -> ImageEntry {
 pub(crate) fn default_split(root: &Path, scenes: Vec<SceneEntry>, split: Split) -> Result<Vec<SceneEntry>> {
     let list = root.join("test.txt");
     let test_names: Option<Vec<String>> = if list.is_file() {
-        let text = std::fs::read_to_string(&list).map_err(|e| TrainError::io(&list, e))?;
+        let text = std::fs::read_to_string(&list).map_err(|e| DataError::io(&list, e))?;
         Some(
             text.lines()
                 .map(str::trim)
@@ -236,7 +211,7 @@ pub(crate) fn keep_pairable(root: &Path, scenes: Vec<SceneEntry>) -> Vec<SceneEn
 /// Errors when a dataset ends up with no scenes, naming the root and the split.
 pub(crate) fn non_empty(root: &Path, split: Split, scenes: Vec<SceneEntry>) -> Result<Vec<SceneEntry>> {
     if scenes.is_empty() {
-        return Err(TrainError::Dataset {
+        return Err(DataError::Dataset {
             root: root.to_owned(),
             reason: format!("no scene with at least two images in the {split:?} split"),
         });
@@ -254,18 +229,18 @@ pub fn intrinsics_file(entry: &ImageEntry) -> Result<PathBuf> {
     if let Some(p) = &entry.intrinsics {
         return Ok(p.clone());
     }
-    let cached = intrinsics_path(&entry.image);
+    let cached = ct_cache_path(&entry.image);
     if cached.is_file() {
         return Ok(cached);
     }
-    Err(TrainError::MissingIntrinsics {
+    Err(DataError::MissingIntrinsics {
         image: entry.image.clone(),
         expected: cached,
     })
 }
 
 /// The target intrinsics of `entry` (exact renderer C_T for synthetic sets, else the cached
-/// `<stem>.intrinsics.exr`), or [`TrainError::MissingIntrinsics`] saying how to produce them.
+/// `<stem>.intrinsics.exr`), or [`DataError::MissingIntrinsics`] saying how to produce them.
 pub fn load_intrinsics(entry: &ImageEntry) -> Result<Ct> {
     let path = intrinsics_file(entry)?;
     Ok(pixl_intrinsics::ct::read_ct(&path)?)
@@ -286,4 +261,21 @@ pub fn ct_to_image(ct: &Ct) -> Image {
         }
     }
     img
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ct_cache_path_is_beside_the_image() {
+        assert_eq!(
+            ct_cache_path(Path::new("scene/dir_3_mip2.jpg")),
+            Path::new("scene/dir_3_mip2.intrinsics.exr")
+        );
+        assert_eq!(
+            coarse_ct_path(Path::new("s/light_0.png"), Path::new("s/light_1.png")),
+            Path::new("s/light_1.from_light_0.intrinsics.exr")
+        );
+    }
 }

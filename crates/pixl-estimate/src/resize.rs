@@ -1,5 +1,5 @@
-//! The resamplers DA3's official code uses, each reproducing its reference implementation's
-//! arithmetic:
+//! The resamplers the estimators' official code uses (DA3, Marigold), each reproducing its
+//! reference implementation's arithmetic:
 //!
 //! - [`cv2_resize_u8`]: OpenCV `cv2.resize` on 8-bit interleaved images with `INTER_CUBIC` or
 //!   `INTER_AREA`, as opencv-python 5.1.0 computes them on x86-64, the official preprocessing's
@@ -18,6 +18,9 @@
 //! - [`bilinear_align_corners`]: PyTorch `F.interpolate(mode="bilinear", align_corners=True)`,
 //!   the DPT head's upsampling, and [`bilinear_half_pixel`] (`align_corners=False`), used to
 //!   bring the outputs back to the photo's size; parallel over channels.
+//! - [`bilinear_antialias`]: PyTorch `F.interpolate(mode="bilinear", antialias=True)` (Marigold's
+//!   input resize): a triangle filter widened by the scale factor when shrinking, taps where
+//!   the filter is non-zero, weights normalised to sum 1 (ATen's `_upsample_bilinear2d_aa`).
 use candle_core::{CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
@@ -379,6 +382,62 @@ impl CustomOp1 for Bilinear {
     }
 }
 
+/// Taps of PyTorch's antialiased linear resampling along one axis: for each output sample, the
+/// first source index and the normalised weights (ATen `_compute_index_ranges_weights`,
+/// `aa_filter` = triangle, support `max(scale, 1)`).
+fn aa_taps(n_in: usize, n_out: usize) -> Vec<(usize, Vec<f32>)> {
+    let scale = n_in as f32 / n_out as f32;
+    let support = if scale >= 1.0 { scale } else { 1.0 };
+    let invscale = if scale >= 1.0 { 1.0 / scale } else { 1.0 };
+    (0..n_out)
+        .map(|i| {
+            let center = scale * (i as f32 + 0.5);
+            // int64_t truncation toward zero, then clamped to the image.
+            let xmin = ((center - support + 0.5) as i64).max(0) as usize;
+            let xmax = ((center + support + 0.5) as i64).clamp(0, n_in as i64) as usize;
+            let mut w: Vec<f32> = (xmin..xmax.max(xmin))
+                .map(|j| {
+                    let x = (j as f32 - center + 0.5) * invscale;
+                    (1.0 - x.abs()).max(0.0)
+                })
+                .collect();
+            let total: f32 = w.iter().sum();
+            if total != 0.0 {
+                w.iter_mut().for_each(|v| *v /= total);
+            }
+            (xmin, w)
+        })
+        .collect()
+}
+
+/// `F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)` of a
+/// planar f32 image `(c, ih, iw)`: columns first, then rows (ATen's order), parallel over planes.
+pub fn bilinear_antialias(src: &[f32], c: usize, ih: usize, iw: usize, h: usize, w: usize) -> Vec<f32> {
+    assert_eq!(src.len(), c * ih * iw, "bilinear_antialias: buffer size");
+    if ih == 0 || iw == 0 || h == 0 || w == 0 {
+        return vec![0.0; c * h * w];
+    }
+    let tx = aa_taps(iw, w);
+    let ty = aa_taps(ih, h);
+    let mut out = vec![0.0f32; c * h * w];
+    out.par_chunks_mut(h * w).enumerate().for_each(|(ch, dst)| {
+        let plane = &src[ch * ih * iw..(ch + 1) * ih * iw];
+        let mut mid = vec![0.0f32; ih * w];
+        for y in 0..ih {
+            let row = &plane[y * iw..(y + 1) * iw];
+            for (x, (x0, wx)) in tx.iter().enumerate() {
+                mid[y * w + x] = wx.iter().enumerate().map(|(k, wk)| row[x0 + k] * wk).sum();
+            }
+        }
+        for (y, (y0, wy)) in ty.iter().enumerate() {
+            for x in 0..w {
+                dst[y * w + x] = wy.iter().enumerate().map(|(k, wk)| mid[(y0 + k) * w + x] * wk).sum();
+            }
+        }
+    });
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -420,5 +479,20 @@ mod tests {
         let one = [7u8, 8, 9];
         let up = cv2_resize_u8(&one, 1, 1, 3, 4, 3, Cv2Filter::Cubic);
         assert!(up.chunks(3).all(|p| p == one));
+    }
+
+    #[test]
+    fn antialias_halving_is_a_tent_average_and_upscaling_is_plain_bilinear() {
+        // 4 -> 2: scale 2, support 2; output 0 centred at 1.0 sees pixels 0..=2 with triangle
+        // weights (0.75, 0.75, 0.25) normalised; by hand: (0.75·1 + 0.75·2 + 0.25·3) / 1.75.
+        let out = bilinear_antialias(&[1.0, 2.0, 3.0, 4.0], 1, 1, 4, 1, 2);
+        assert!((out[0] - 3.0 / 1.75).abs() < 1e-6, "{out:?}");
+        assert!((out[1] - (0.25 * 2.0 + 0.75 * 3.0 + 0.75 * 4.0) / 1.75).abs() < 1e-6);
+        // Enlarging: the same as align_corners=False bilinear, border clamped.
+        let up = bilinear_antialias(&[0.0, 1.0], 1, 1, 2, 1, 4);
+        let want = [0.0, 0.25, 0.75, 1.0];
+        for (a, b) in up.iter().zip(want) {
+            assert!((a - b).abs() < 1e-6, "{up:?}");
+        }
     }
 }

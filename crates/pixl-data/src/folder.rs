@@ -1,9 +1,13 @@
 //! Generic folders (`ROOT/<scene>/*.(png|jpg|jpeg|exr)`, minus `*.intrinsics.exr`) and the
 //! synthetic sets written by `pixl synth` (same layout plus `ROOT/scenes.json`, whose entries
-//! carry the split and point at the exact renderer intrinsics of every image).
+//! carry the split and point at the exact renderer intrinsics of every image). This module owns
+//! the manifest's format ([`SynthManifest`]); `pixl_train::synth` writes it.
+//!
+//! Folders: scenes and images sorted by name, no official split. Synthetic sets: scenes sorted
+//! by name, images in manifest order; a manifest entry whose files are missing is an error.
 use super::{default_split, entry_with_cache, is_intrinsics_file, keep_pairable, non_empty, sorted_dir};
 use super::{Dataset, ImageEntry, SceneEntry, Split};
-use crate::error::{Result, TrainError};
+use crate::error::{DataError, Result};
 use std::path::Path;
 
 pub struct Folder {
@@ -17,7 +21,8 @@ fn is_image(path: &Path) -> bool {
 }
 
 impl Folder {
-    pub fn open(root: &Path, split: Split) -> Result<Self> {
+    /// Every scene directory under `root`, sorted by name, with its images (possibly fewer than two).
+    pub(crate) fn scan(root: &Path) -> Result<Vec<SceneEntry>> {
         let mut scenes = Vec::new();
         for dir in sorted_dir(root)?.into_iter().filter(|p| p.is_dir()) {
             let Some(name) = dir.file_name().and_then(|n| n.to_str()).map(String::from) else {
@@ -30,7 +35,11 @@ impl Folder {
                 .collect();
             scenes.push(SceneEntry { name, images });
         }
-        let scenes = default_split(root, keep_pairable(root, scenes), split)?;
+        Ok(scenes)
+    }
+
+    pub fn open(root: &Path, split: Split) -> Result<Self> {
+        let scenes = default_split(root, keep_pairable(root, Self::scan(root)?), split)?;
         Ok(Self {
             scenes: non_empty(root, split, scenes)?,
         })
@@ -56,7 +65,7 @@ pub struct SynthManifest {
     pub spp: u32,
     /// With `pixl synth --coarse`: where the coarse reconstruction's albedo came from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub coarse_albedo: Option<crate::synth::CoarseAlbedo>,
+    pub coarse_albedo: Option<CoarseAlbedo>,
     pub scenes: Vec<SynthSceneRecord>,
 }
 
@@ -76,6 +85,18 @@ pub struct SynthImageRecord {
     pub lighting: String,
 }
 
+/// Where the coarse reconstruction of `pixl synth --coarse` takes its albedo texture from.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CoarseAlbedo {
+    /// The source render's `DiffCol` pass: a perfect albedo estimator.
+    #[default]
+    Diffcol,
+    /// The source image itself (`pixl reconstruct` without `--albedo`): no estimator, the source's
+    /// shading and shadows stay in the texture.
+    Photo,
+}
+
 pub const MANIFEST: &str = "scenes.json";
 
 pub struct Synth {
@@ -85,16 +106,18 @@ pub struct Synth {
 /// Where the coarse reconstructions of the `pixl synth --coarse` set at `root` took their albedo
 /// from, as its manifest records it (`None`: no manifest, an unreadable one, or a set made before
 /// the field existed or without `--coarse`).
-pub fn synth_coarse_albedo(root: &Path) -> Option<crate::synth::CoarseAlbedo> {
+pub fn synth_coarse_albedo(root: &Path) -> Option<CoarseAlbedo> {
     let text = std::fs::read_to_string(root.join(MANIFEST)).ok()?;
     serde_json::from_str::<SynthManifest>(&text).ok()?.coarse_albedo
 }
 
 impl Synth {
-    pub fn open(root: &Path, split: Split) -> Result<Self> {
+    /// The scenes of `split` listed in the manifest under `root`, sorted by name, each with every
+    /// image it lists (possibly fewer than two); an error if a listed file is missing.
+    pub(crate) fn scan(root: &Path, split: Split) -> Result<Vec<SceneEntry>> {
         let path = root.join(MANIFEST);
-        let text = std::fs::read_to_string(&path).map_err(|e| TrainError::io(&path, e))?;
-        let manifest: SynthManifest = serde_json::from_str(&text).map_err(|e| TrainError::File {
+        let text = std::fs::read_to_string(&path).map_err(|e| DataError::io(&path, e))?;
+        let manifest: SynthManifest = serde_json::from_str(&text).map_err(|e| DataError::File {
             path: path.clone(),
             reason: format!("not a `pixl synth` manifest: {e}"),
         })?;
@@ -106,7 +129,7 @@ impl Synth {
             for im in rec.images {
                 let (image, intrinsics) = (root.join(&im.image), root.join(&im.intrinsics));
                 if !image.is_file() || !intrinsics.is_file() {
-                    return Err(TrainError::File {
+                    return Err(DataError::File {
                         path: path.clone(),
                         reason: format!(
                             "scene {} lists {} / {} which do not exist",
@@ -121,6 +144,11 @@ impl Synth {
             }
             scenes.push(SceneEntry { name: rec.name, images });
         }
+        Ok(scenes)
+    }
+
+    pub fn open(root: &Path, split: Split) -> Result<Self> {
+        let scenes = Self::scan(root, split)?;
         Ok(Self {
             scenes: non_empty(root, split, keep_pairable(root, scenes))?,
         })

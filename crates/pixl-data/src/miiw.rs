@@ -1,5 +1,7 @@
 //! MIT Multi-Illumination Images in the Wild: `ROOT/<scene>/dir_<0..24>_mip<N>.(jpg|exr)`.
-//! When both a JPEG and an EXR exist for a light direction, the JPEG (sRGB) is used.
+//! When both a JPEG and an EXR exist for a light direction, the JPEG (sRGB) is used. Images of a
+//! scene are ordered by direction number (`dir_2` before `dir_10`). Test split: the scenes whose
+//! names start with `everett` (the official one).
 use super::{entry_with_cache, keep_pairable, non_empty, sorted_dir, Dataset, SceneEntry, Split};
 use crate::error::Result;
 use std::path::Path;
@@ -14,7 +16,9 @@ pub struct Miiw {
 }
 
 impl Miiw {
-    pub fn open(root: &Path, split: Split, mip: u32) -> Result<Self> {
+    /// Every scene directory of `split` under `root`, sorted by name, with the images it holds at
+    /// mip level `mip` (possibly fewer than two, or none).
+    pub(crate) fn scan(root: &Path, mip: u32, split: Split) -> Result<Vec<SceneEntry>> {
         let mut scenes = Vec::new();
         for dir in sorted_dir(root)?.into_iter().filter(|p| p.is_dir()) {
             let Some(name) = dir.file_name().and_then(|n| n.to_str()).map(String::from) else {
@@ -36,6 +40,11 @@ impl Miiw {
             }
             scenes.push(SceneEntry { name, images });
         }
+        Ok(scenes)
+    }
+
+    pub fn open(root: &Path, split: Split, mip: u32) -> Result<Self> {
+        let scenes = Self::scan(root, mip, split)?;
         Ok(Self {
             scenes: non_empty(root, split, keep_pairable(root, scenes))?,
         })

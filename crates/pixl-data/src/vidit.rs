@@ -1,5 +1,6 @@
 //! VIDIT: `ROOT/Image<NNN>_<temp>_<dir>.png` (temperatures 2500–6500 K, directions N…NW), one
-//! scene per `<NNN>`; the scene is named `Image<NNN>`.
+//! scene per `<NNN>`; the scene is named `Image<NNN>`. Scenes and images are sorted by name; no
+//! official split.
 use super::{default_split, entry_with_cache, keep_pairable, non_empty, sorted_dir, Dataset, SceneEntry, Split};
 use crate::error::Result;
 use std::collections::BTreeMap;
@@ -27,7 +28,9 @@ fn scene_of(file_name: &str) -> Option<String> {
 }
 
 impl Vidit {
-    pub fn open(root: &Path, split: Split) -> Result<Self> {
+    /// Every scene under `root` (grouped by image number), sorted by name, with its images (possibly
+    /// only one).
+    pub(crate) fn scan(root: &Path) -> Result<Vec<SceneEntry>> {
         let mut groups: BTreeMap<String, Vec<_>> = BTreeMap::new();
         for path in sorted_dir(root)?.into_iter().filter(|p| p.is_file()) {
             let Some(scene) = path.file_name().and_then(|n| n.to_str()).and_then(scene_of) else {
@@ -35,11 +38,14 @@ impl Vidit {
             };
             groups.entry(scene).or_default().push(entry_with_cache(path));
         }
-        let scenes = groups
+        Ok(groups
             .into_iter()
             .map(|(name, images)| SceneEntry { name, images })
-            .collect();
-        let scenes = default_split(root, keep_pairable(root, scenes), split)?;
+            .collect())
+    }
+
+    pub fn open(root: &Path, split: Split) -> Result<Self> {
+        let scenes = default_split(root, keep_pairable(root, Self::scan(root)?), split)?;
         Ok(Self {
             scenes: non_empty(root, split, scenes)?,
         })

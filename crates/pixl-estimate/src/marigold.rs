@@ -1,0 +1,603 @@
+//! Marigold-IID v1.1 (paper §3.3 training targets, §3.4 materials): intrinsic image
+//! decomposition of a photo with the official diffusers-format checkpoints, loaded unchanged.
+//!
+//! - **Appearance** (`prs-eth/marigold-iid-appearance-v1-1`, UNet 12 → 8 latent channels):
+//!   albedo (**sRGB**-encoded) and material (R = roughness, G = metallicity, linear).
+//! - **Lighting** (`prs-eth/marigold-iid-lighting-v1-1`, 16 → 12): albedo, diffuse shading and
+//!   non-diffuse residual, all **linear** — the paper's A, S, R.
+//!
+//! Contract of [`Marigold::predict`]: a photo ([`Image`], values in [0, 1] as read from an 8-bit
+//! file, 1–4 channels; RGB is used) → one 3-channel map per target at the photo's size, values
+//! in [0, 1], in the target's own colour space ([`Target::space`]). The pipeline is diffusers'
+//! `MarigoldIntrinsicsPipeline`, step by step:
+//! 1. ×2 − 1, antialiased bilinear resize of the longest side to the processing resolution
+//!    (`h·res // max(h, w)`), replicate-pad right/bottom to a multiple of the VAE factor (8);
+//! 2. VAE posterior **mode** × `scaling_factor` ([`vae`]);
+//! 3. per ensemble member, from Gaussian noise: `steps` DDIM updates ([`scheduler`]) of the UNet
+//!    (candle-transformers' SD2 `UNet2DConditionModel`, widened input/output) on
+//!    `cat[image_latent, target_latents]` with the empty-prompt embedding ([`text`]);
+//! 4. each target's 4 latent channels decoded by the VAE, clipped to [−1, 1], `(x + 1)/2`,
+//!    padding removed;
+//! 5. ensemble members reduced per pixel by the median (the lower one for an even count, as
+//!    `torch.median`) or the mean;
+//! 6. bilinear resize (no antialiasing) back to the photo's size.
+//!
+//! Noise comes from [`pixl_core::rng::Rng`] seeded by [`MarigoldOptions::seed`] (the same seed
+//! gives the same maps); [`Marigold::predict_with_noise`] takes it from the caller instead (the
+//! parity tests feed the official pipeline's noise). Everything runs in f32; `.fp16.safetensors`
+//! weight variants are upcast on load.
+//!
+//! One known difference from diffusers: the reused UNet's GEGLU feed-forward uses the tanh
+//! approximation of GELU where PyTorch uses the exact erf form (up to ~1e-3 per activation).
+pub mod config;
+pub mod scheduler;
+pub mod text;
+pub mod vae;
+
+pub use config::{PipelineConfig, PredictionSpace, Target, TextConfig, UnetConfig, VaeConfig};
+pub use scheduler::{Ddim, SchedulerConfig};
+
+use crate::error::EstimateError;
+use crate::resize;
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+use candle_transformers::models::stable_diffusion::unet_2d::UNet2DConditionModel;
+use pixl_core::Image;
+use std::path::{Path, PathBuf};
+
+/// Which IID model a checkpoint is, from its target names.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum IidVariant {
+    /// Targets `albedo`, `material`.
+    Appearance,
+    /// Targets `albedo`, `shading`, `residual`.
+    Lighting,
+}
+
+impl IidVariant {
+    pub fn target_names(self) -> &'static [&'static str] {
+        match self {
+            IidVariant::Appearance => &["albedo", "material"],
+            IidVariant::Lighting => &["albedo", "shading", "residual"],
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            IidVariant::Appearance => "appearance",
+            IidVariant::Lighting => "lighting",
+        }
+    }
+
+    fn from_targets(names: &[&str]) -> Option<Self> {
+        [IidVariant::Appearance, IidVariant::Lighting]
+            .into_iter()
+            .find(|v| v.target_names() == names)
+    }
+}
+
+/// How ensemble members are combined.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Reduction {
+    /// Per-pixel median (lower median for an even count), diffusers' default.
+    Median,
+    Mean,
+}
+
+/// Options of [`Marigold::predict`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct MarigoldOptions {
+    /// Denoising steps (`None`: the checkpoint's default, 4 for v1.1).
+    pub steps: Option<usize>,
+    /// Ensemble members (≥ 1).
+    pub ensemble: usize,
+    /// Longest side processed (`None`: the checkpoint's default, 768; must be a multiple of 8).
+    pub resolution: Option<usize>,
+    pub reduction: Reduction,
+    /// Seed of the initial noise.
+    pub seed: u64,
+}
+
+impl Default for MarigoldOptions {
+    fn default() -> Self {
+        Self {
+            steps: None,
+            ensemble: 1,
+            resolution: None,
+            reduction: Reduction::Median,
+            seed: 0,
+        }
+    }
+}
+
+/// Where [`Marigold::predict`] is (for a progress bar): one tick per UNet step and per decode.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Progress {
+    pub done: usize,
+    pub total: usize,
+}
+
+/// Output of [`Marigold::predict`].
+#[derive(Clone, Debug)]
+pub struct IidPrediction {
+    /// One RGB map per target at the photo's size, values in [0, 1], in latent order.
+    pub maps: Vec<(Target, Image)>,
+    /// Resized (unpadded) network input `(width, height)`.
+    pub processed_size: (usize, usize),
+    pub steps: usize,
+    pub ensemble: usize,
+}
+
+impl IidPrediction {
+    /// The map of the target called `name`.
+    pub fn get(&self, name: &str) -> Option<&Image> {
+        self.maps.iter().find(|(t, _)| t.name == name).map(|(_, m)| m)
+    }
+}
+
+/// The preprocessed photo: `(1, 3, PH + ph, PW + pw)` in [−1, 1], and its sizes.
+#[derive(Clone, Debug)]
+pub struct Preprocessed {
+    pub image: Tensor,
+    /// Resized size `(height, width)` before padding.
+    pub resized: (usize, usize),
+    /// Padding added at the bottom and right `(ph, pw)`.
+    pub padding: (usize, usize),
+}
+
+/// The files of a diffusers-format checkpoint folder, with the `.fp16` variant when only it
+/// is present.
+#[derive(Clone, Debug)]
+pub struct CheckpointFiles {
+    pub model_index: PathBuf,
+    pub scheduler: PathBuf,
+    pub unet_config: PathBuf,
+    pub unet: PathBuf,
+    pub vae_config: PathBuf,
+    pub vae: PathBuf,
+    pub text_config: PathBuf,
+    /// `None` when the weights are absent but an empty-prompt embedding is cached.
+    pub text: Option<PathBuf>,
+    pub tokenizer: PathBuf,
+    pub text_dir: PathBuf,
+}
+
+impl CheckpointFiles {
+    /// Finds the files under `dir`; a missing one is an error naming it.
+    pub fn find(dir: &Path) -> Result<Self, EstimateError> {
+        let need = |rel: &str| -> Result<PathBuf, EstimateError> {
+            let p = dir.join(rel);
+            if p.is_file() {
+                Ok(p)
+            } else {
+                Err(EstimateError::Config {
+                    path: dir.to_owned(),
+                    reason: format!(
+                        "not a Marigold-IID checkpoint folder: `{rel}` is missing (expected the diffusers layout: \
+model_index.json, scheduler/, unet/, vae/, text_encoder/, tokenizer/)"
+                    ),
+                })
+            }
+        };
+        let weights = |sub: &str, stem: &str| -> Option<PathBuf> {
+            [format!("{sub}/{stem}.safetensors"), format!("{sub}/{stem}.fp16.safetensors")]
+                .into_iter()
+                .map(|r| dir.join(r))
+                .find(|p| p.is_file())
+        };
+        let missing_weights = |sub: &str, stem: &str| EstimateError::Config {
+            path: dir.to_owned(),
+            reason: format!("`{sub}/{stem}.safetensors` (or its `.fp16` variant) is missing"),
+        };
+        let model_index = need("model_index.json")?;
+        let text_dir = dir.join("text_encoder");
+        let text = weights("text_encoder", "model");
+        if text.is_none() && !text_dir.join(text::CACHE_FILE).is_file() {
+            return Err(missing_weights("text_encoder", "model"));
+        }
+        Ok(Self {
+            model_index,
+            scheduler: need("scheduler/scheduler_config.json")?,
+            unet_config: need("unet/config.json")?,
+            unet: weights("unet", "diffusion_pytorch_model").ok_or_else(|| missing_weights("unet", "diffusion_pytorch_model"))?,
+            vae_config: need("vae/config.json")?,
+            vae: weights("vae", "diffusion_pytorch_model").ok_or_else(|| missing_weights("vae", "diffusion_pytorch_model"))?,
+            text_config: need("text_encoder/config.json")?,
+            text,
+            tokenizer: dir.join("tokenizer"),
+            text_dir,
+        })
+    }
+}
+
+fn read_text(path: &Path) -> Result<String, EstimateError> {
+    std::fs::read_to_string(path).map_err(|source| EstimateError::Io {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+fn config<T>(path: &Path, parse: impl FnOnce(&str) -> Result<T, String>) -> Result<T, EstimateError> {
+    parse(&read_text(path)?).map_err(|reason| EstimateError::Config {
+        path: path.to_owned(),
+        reason,
+    })
+}
+
+fn var_builder(path: &Path, device: &Device) -> Result<VarBuilder<'static>, EstimateError> {
+    // SAFETY (mmap): the file is opened read-only and not modified while mapped.
+    unsafe { VarBuilder::from_mmaped_safetensors(&[path], DType::F32, device) }.map_err(|e| {
+        EstimateError::Weights {
+            path: path.to_owned(),
+            reason: e.to_string(),
+        }
+    })
+}
+
+/// Maps a candle error while building a network to one naming the weight file.
+fn building(path: &Path) -> impl Fn(candle_core::Error) -> EstimateError + '_ {
+    move |e| EstimateError::Weights {
+        path: path.to_owned(),
+        reason: e.to_string(),
+    }
+}
+
+/// A loaded Marigold-IID checkpoint.
+pub struct Marigold {
+    pipeline: PipelineConfig,
+    variant: Option<IidVariant>,
+    unet: UNet2DConditionModel,
+    unet_cfg: UnetConfig,
+    encoder: vae::VaeEncoder,
+    decoder: vae::VaeDecoder,
+    vae_cfg: VaeConfig,
+    scheduler: Ddim,
+    empty: Tensor,
+    device: Device,
+}
+
+impl Marigold {
+    /// Loads a diffusers-format folder. All configs are checked before any weight is read.
+    pub fn load(dir: &Path, device: &Device) -> Result<Self, EstimateError> {
+        let f = CheckpointFiles::find(dir)?;
+        let pipeline = config(&f.model_index, PipelineConfig::from_json)?;
+        let sched = config(&f.scheduler, SchedulerConfig::from_json)?;
+        let unet_cfg = config(&f.unet_config, UnetConfig::from_json)?;
+        let vae_cfg = config(&f.vae_config, VaeConfig::from_json)?;
+        let text_cfg = config(&f.text_config, TextConfig::from_json)?;
+        let t = pipeline.targets.len();
+        let l = vae_cfg.latent_channels;
+        if unet_cfg.in_channels != (t + 1) * l || unet_cfg.out_channels != t * l {
+            return Err(EstimateError::Config {
+                path: f.unet_config.clone(),
+                reason: format!(
+                    "the UNet maps {} → {} channels, but {t} targets of {l} latent channels need {} → {}",
+                    unet_cfg.in_channels,
+                    unet_cfg.out_channels,
+                    (t + 1) * l,
+                    t * l
+                ),
+            });
+        }
+        if unet_cfg.candle.cross_attention_dim != text_cfg.hidden_size {
+            return Err(EstimateError::Config {
+                path: f.unet_config.clone(),
+                reason: format!(
+                    "cross_attention_dim {} differs from the text encoder's hidden_size {}",
+                    unet_cfg.candle.cross_attention_dim, text_cfg.hidden_size
+                ),
+            });
+        }
+        let empty = match text::read_cache(&f.text_dir, Some(text_cfg.hidden_size), device) {
+            Some(e) => e,
+            None => {
+                let ids = text::empty_prompt_ids(&f.tokenizer)?;
+                let tp = f.text.clone().ok_or_else(|| EstimateError::Config {
+                    path: dir.to_owned(),
+                    reason: "`text_encoder/model.safetensors` is missing".into(),
+                })?;
+                let enc = text::TextEncoder::new(text_cfg.clone(), var_builder(&tp, device)?).map_err(building(&tp))?;
+                let e = enc.forward(&ids).map_err(building(&tp))?;
+                text::write_cache(&f.text_dir, &e);
+                e
+            }
+        };
+        let unet = UNet2DConditionModel::new(
+            var_builder(&f.unet, device)?,
+            unet_cfg.in_channels,
+            unet_cfg.out_channels,
+            false,
+            unet_cfg.candle.clone(),
+        )
+        .map_err(building(&f.unet))?;
+        let vb = var_builder(&f.vae, device)?;
+        let encoder = vae::VaeEncoder::new(&vae_cfg, vb.clone()).map_err(building(&f.vae))?;
+        let decoder = vae::VaeDecoder::new(&vae_cfg, vb).map_err(building(&f.vae))?;
+        let variant = IidVariant::from_targets(&pipeline.target_names());
+        Ok(Self {
+            pipeline,
+            variant,
+            unet,
+            unet_cfg,
+            encoder,
+            decoder,
+            vae_cfg,
+            scheduler: Ddim::new(sched),
+            empty,
+            device: device.clone(),
+        })
+    }
+
+    /// Appearance, Lighting, or `None` for another target set.
+    pub fn variant(&self) -> Option<IidVariant> {
+        self.variant
+    }
+
+    pub fn pipeline(&self) -> &PipelineConfig {
+        &self.pipeline
+    }
+
+    pub fn scheduler(&self) -> &Ddim {
+        &self.scheduler
+    }
+
+    pub fn vae_config(&self) -> &VaeConfig {
+        &self.vae_cfg
+    }
+
+    /// The empty-prompt embedding `(1, tokens, hidden)`.
+    pub fn empty_embedding(&self) -> &Tensor {
+        &self.empty
+    }
+
+    /// Latent channels of all targets together.
+    pub fn target_latent_channels(&self) -> usize {
+        self.unet_cfg.out_channels
+    }
+
+    /// The checkpoint's defaults resolved: `(steps, resolution)`.
+    pub fn resolve(&self, opts: &MarigoldOptions) -> Result<(usize, usize), EstimateError> {
+        let steps = opts.steps.or(self.pipeline.default_steps).unwrap_or(4);
+        let res = opts.resolution.or(self.pipeline.default_resolution).unwrap_or(768);
+        let f = self.vae_cfg.scale_factor();
+        if steps == 0 || steps > self.scheduler.config.num_train_timesteps {
+            return Err(EstimateError::Input(format!(
+                "steps {steps}: must be between 1 and {}",
+                self.scheduler.config.num_train_timesteps
+            )));
+        }
+        if res == 0 || res % f != 0 {
+            return Err(EstimateError::Input(format!(
+                "processing resolution {res}: must be a positive multiple of {f}"
+            )));
+        }
+        if opts.ensemble == 0 {
+            return Err(EstimateError::Input("the ensemble size must be at least 1".into()));
+        }
+        Ok((steps, res))
+    }
+
+    /// Approximate work of one [`Marigold::predict`] in TFLOP (2 × multiply-adds) for the
+    /// released SD2-size networks, `None` for other sizes: per 768² pixels, VAE encoding 2.6,
+    /// one UNet step 2.14, one target's VAE decoding 5.75 (analytic counts of the SD2 UNet and VAE).
+    pub fn approx_tflop(&self, width: usize, height: usize, opts: &MarigoldOptions) -> Option<f64> {
+        let released = self.unet_cfg.candle.blocks.first()?.out_channels == 320
+            && self.vae_cfg.block_out_channels.first() == Some(&128);
+        if !released || width == 0 || height == 0 {
+            return None;
+        }
+        let (steps, res) = self.resolve(opts).ok()?;
+        let mx = width.max(height);
+        let f = self.vae_cfg.scale_factor();
+        let (nh, nw) = ((height * res / mx).div_ceil(f) * f, (width * res / mx).div_ceil(f) * f);
+        let area = (nh * nw) as f64 / (768.0 * 768.0);
+        let t = self.pipeline.targets.len() as f64;
+        Some(area * (2.6 + opts.ensemble as f64 * (steps as f64 * 2.14 + t * 5.75)))
+    }
+
+    /// Step 1: `(1, 3, H', W')` in [−1, 1], resized and padded.
+    pub fn preprocess(&self, photo: &Image, resolution: usize) -> Result<Preprocessed, EstimateError> {
+        let (w, h) = (photo.width, photo.height);
+        if w == 0 || h == 0 {
+            return Err(EstimateError::Input("the photo is empty".into()));
+        }
+        let mx = w.max(h);
+        let (nh, nw) = (h * resolution / mx, w * resolution / mx);
+        if nh == 0 || nw == 0 {
+            return Err(EstimateError::Input(format!(
+                "extreme aspect ratio of the photo ({w}x{h}): one side would be 0 pixels at {resolution}"
+            )));
+        }
+        let c = photo.channels;
+        let mut planar = vec![0.0f32; 3 * h * w];
+        for i in 0..h * w {
+            for ch in 0..3 {
+                let v = photo.data[i * c + ch.min(c.saturating_sub(1))];
+                if !v.is_finite() {
+                    return Err(EstimateError::Input("the photo has non-finite values".into()));
+                }
+                planar[ch * h * w + i] = v * 2.0 - 1.0;
+            }
+        }
+        let resized = resize::bilinear_antialias(&planar, 3, h, w, nh, nw);
+        let f = self.vae_cfg.scale_factor();
+        let (ph, pw) = ((f - nh % f) % f, (f - nw % f) % f);
+        let (hh, ww) = (nh + ph, nw + pw);
+        let mut padded = vec![0.0f32; 3 * hh * ww];
+        for ch in 0..3 {
+            for y in 0..hh {
+                let sy = y.min(nh - 1);
+                for x in 0..ww {
+                    padded[(ch * hh + y) * ww + x] = resized[(ch * nh + sy) * nw + x.min(nw - 1)];
+                }
+            }
+        }
+        let image = Tensor::from_vec(padded, (1, 3, hh, ww), &self.device)?;
+        Ok(Preprocessed {
+            image,
+            resized: (nh, nw),
+            padding: (ph, pw),
+        })
+    }
+
+    /// Step 2: the image latent, `mode × scaling_factor`.
+    pub fn encode(&self, image: &Tensor) -> Result<Tensor, EstimateError> {
+        Ok((self.encoder.mode(image)? * self.vae_cfg.scaling_factor)?)
+    }
+
+    /// The UNet's prediction for `cat[image_latent, target_latent]` at timestep `t`.
+    pub fn unet(&self, image_latent: &Tensor, target_latent: &Tensor, t: usize) -> Result<Tensor, EstimateError> {
+        let x = Tensor::cat(&[image_latent, target_latent], 1)?;
+        let b = x.dim(0)?;
+        let ctx = self.empty.repeat((b, 1, 1))?;
+        Ok(self.unet.forward(&x, t as f64, &ctx)?)
+    }
+
+    /// Step 3 for one member: `steps` DDIM updates from `noise`; `on_step(k, latent)` sees each.
+    pub fn denoise(
+        &self,
+        image_latent: &Tensor,
+        noise: &Tensor,
+        steps: usize,
+        on_step: &mut dyn FnMut(usize, &Tensor),
+    ) -> Result<Tensor, EstimateError> {
+        let ts = self.scheduler.timesteps(steps).map_err(EstimateError::Input)?;
+        let mut lat = noise.clone();
+        for (k, &t) in ts.iter().enumerate() {
+            let out = self.unet(image_latent, &lat, t)?;
+            lat = self.scheduler.step(&out, t, &lat, steps)?;
+            on_step(k, &lat);
+        }
+        Ok(lat)
+    }
+
+    /// Step 4 for one target latent `(1, 4, h, w)`: `(1, 3, 8h, 8w)` in [0, 1].
+    pub fn decode(&self, latent: &Tensor) -> Result<Tensor, EstimateError> {
+        let x = self.decoder.decode(&(latent / self.vae_cfg.scaling_factor)?)?;
+        Ok(((x.clamp(-1f32, 1f32)? + 1.0)? / 2.0)?)
+    }
+
+    /// The whole pipeline with noise from [`MarigoldOptions::seed`].
+    pub fn predict(
+        &self,
+        photo: &Image,
+        opts: &MarigoldOptions,
+        progress: &mut dyn FnMut(Progress),
+    ) -> Result<IidPrediction, EstimateError> {
+        let (_, res) = self.resolve(opts)?;
+        let f = self.vae_cfg.scale_factor();
+        let (w, h) = (photo.width, photo.height);
+        let mx = w.max(h).max(1);
+        let (nh, nw) = (h * res / mx, w * res / mx);
+        let (lh, lw) = (nh.div_ceil(f), nw.div_ceil(f));
+        let c = self.target_latent_channels();
+        let mut rng = pixl_core::rng::Rng::new(opts.seed);
+        let n = opts.ensemble * c * lh * lw;
+        let noise: Vec<f32> = (0..n).map(|_| rng.normal()).collect();
+        let noise = Tensor::from_vec(noise, (opts.ensemble, c, lh, lw), &self.device)?;
+        self.predict_with_noise(photo, opts, &noise, progress)
+    }
+
+    /// The whole pipeline with the initial latents given: `(ensemble, T·4, h/8, w/8)`.
+    pub fn predict_with_noise(
+        &self,
+        photo: &Image,
+        opts: &MarigoldOptions,
+        noise: &Tensor,
+        progress: &mut dyn FnMut(Progress),
+    ) -> Result<IidPrediction, EstimateError> {
+        let (steps, res) = self.resolve(opts)?;
+        let pre = self.preprocess(photo, res)?;
+        let (_, _, hh, ww) = pre.image.dims4()?;
+        let f = self.vae_cfg.scale_factor();
+        let want = (opts.ensemble, self.target_latent_channels(), hh / f, ww / f);
+        if noise.dims4()? != want {
+            return Err(EstimateError::Input(format!(
+                "initial latents have shape {:?}, expected {want:?}",
+                noise.dims()
+            )));
+        }
+        let t = self.pipeline.targets.len();
+        let l = self.vae_cfg.latent_channels;
+        let total = opts.ensemble * (steps + t) + 1;
+        let mut done = 0;
+        let mut tick = |done: &mut usize| {
+            *done += 1;
+            progress(Progress { done: *done, total });
+        };
+        let image_latent = self.encode(&pre.image)?;
+        tick(&mut done);
+        let (nh, nw) = pre.resized;
+        // members[e][k]: target k of member e, planar (3, nh, nw).
+        let mut members: Vec<Vec<Vec<f32>>> = Vec::with_capacity(opts.ensemble);
+        for e in 0..opts.ensemble {
+            let z = noise.narrow(0, e, 1)?;
+            let mut on_step = |_: usize, _: &Tensor| tick(&mut done);
+            let lat = self.denoise(&image_latent, &z, steps, &mut on_step)?;
+            let mut maps = Vec::with_capacity(t);
+            for k in 0..t {
+                let d = self.decode(&lat.narrow(1, k * l, l)?)?;
+                let d = d.narrow(2, 0, nh)?.narrow(3, 0, nw)?;
+                maps.push(d.flatten_all()?.to_vec1::<f32>()?);
+                tick(&mut done);
+            }
+            members.push(maps);
+        }
+        let mut out = Vec::with_capacity(t);
+        for (k, target) in self.pipeline.targets.iter().enumerate() {
+            let planes: Vec<&[f32]> = members.iter().map(|m| m[k].as_slice()).collect();
+            let reduced = reduce(&planes, opts.reduction);
+            let small = Tensor::from_vec(reduced, (1, 3, nh, nw), &Device::Cpu)?;
+            let full = resize::bilinear_half_pixel(&small, photo.height, photo.width)?;
+            let planar = full.flatten_all()?.to_vec1::<f32>()?;
+            let (w, h) = (photo.width, photo.height);
+            let img = Image::from_fn(w, h, 3, |x, y, c| planar[(c * h + y) * w + x]);
+            out.push((target.clone(), img));
+        }
+        Ok(IidPrediction {
+            maps: out,
+            processed_size: (nw, nh),
+            steps,
+            ensemble: opts.ensemble,
+        })
+    }
+}
+
+/// Per-element median (lower median for an even count, as `torch.median`) or mean.
+pub fn reduce(members: &[&[f32]], how: Reduction) -> Vec<f32> {
+    let n = members.len();
+    if n == 1 {
+        return members[0].to_vec();
+    }
+    let len = members[0].len();
+    let mut buf = vec![0.0f32; n];
+    (0..len)
+        .map(|i| {
+            for (b, m) in buf.iter_mut().zip(members) {
+                *b = m[i];
+            }
+            match how {
+                Reduction::Mean => buf.iter().sum::<f32>() / n as f32,
+                Reduction::Median => {
+                    buf.sort_by(f32::total_cmp);
+                    buf[(n - 1) / 2]
+                }
+            }
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn median_is_the_lower_one_for_even_counts() {
+        let a = [1.0f32, 5.0];
+        let b = [3.0f32, 2.0];
+        let c = [2.0f32, 9.0];
+        assert_eq!(reduce(&[&a, &b, &c], Reduction::Median), vec![2.0, 5.0]);
+        assert_eq!(reduce(&[&a, &b], Reduction::Median), vec![1.0, 2.0]);
+        assert_eq!(reduce(&[&a, &b], Reduction::Mean), vec![2.0, 3.5]);
+    }
+}

@@ -1,0 +1,179 @@
+//! Marigold-IID against diffusers' `MarigoldIntrinsicsPipeline` on tiny random models
+//! (`fixtures/marigold`, made by `scripts/fixtures/marigold.py`): scheduler tables, the
+//! empty-prompt embedding, preprocessing, the image latent, every UNet output and DDIM step,
+//! the decoded maps and the final prediction, for ensembles of 1 and 3; Appearance from f32
+//! files, Lighting from `.fp16` files only.
+use candle_core::{DType, Device, Tensor};
+use pixl_core::Image;
+use pixl_estimate::marigold::{reduce, Ddim, IidVariant, Marigold, MarigoldOptions, Reduction, SchedulerConfig};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+fn fixtures() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/marigold")
+}
+
+fn load(name: &str) -> HashMap<String, Tensor> {
+    let p = fixtures().join(name);
+    candle_core::safetensors::load(&p, &Device::Cpu).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+fn f32s(t: &Tensor) -> Vec<f32> {
+    t.to_dtype(DType::F32).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap()
+}
+
+fn max_abs(a: &[f32], b: &[f32]) -> f64 {
+    assert_eq!(a.len(), b.len(), "lengths differ");
+    a.iter().zip(b).fold(0f64, |m, (&x, &y)| m.max((x as f64 - y as f64).abs()))
+}
+
+fn close(what: &str, got: &Tensor, want: &Tensor, tol: f64) {
+    assert_eq!(got.dims(), want.dims(), "{what}: shape");
+    let e = max_abs(&f32s(got), &f32s(want));
+    eprintln!("{what}: max abs error {e:.2e}");
+    assert!(e <= tol, "{what}: max abs error {e:.3e} > {tol:.0e}");
+}
+
+/// A copy of a fixture folder (loading caches the text embedding beside the weights).
+fn copy_dir(src: &Path, dst: &Path) {
+    std::fs::create_dir_all(dst).unwrap();
+    for e in std::fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        let to = dst.join(e.file_name());
+        if e.path().is_dir() {
+            copy_dir(&e.path(), &to);
+        } else {
+            std::fs::copy(e.path(), &to).unwrap();
+        }
+    }
+}
+
+/// The fixture's `image` (1, 3, H, W) as an interleaved [`Image`].
+fn photo(case: &HashMap<String, Tensor>) -> Image {
+    let t = &case["image"];
+    let (_, _, h, w) = t.dims4().unwrap();
+    let v = f32s(t);
+    Image::from_fn(w, h, 3, |x, y, c| v[(c * h + y) * w + x])
+}
+
+#[test]
+fn scheduler_tables_match_diffusers() {
+    let text = std::fs::read_to_string(fixtures().join("appearance/scheduler/scheduler_config.json")).unwrap();
+    let d = Ddim::new(SchedulerConfig::from_json(&text).unwrap());
+    let t = load("scheduler_tables.safetensors");
+    // PyTorch's f32 sqrt is not always correctly rounded (1 ulp on some values). ᾱ, which is
+    // what the step uses, agrees to 1e-6; the last betas are 1 − ᾱ_t/ᾱ_{t−1} of tiny ᾱ values,
+    // where such an ulp becomes ~3e-6 (β₉₈₉ = 0.177290 vs 0.177287).
+    let e = max_abs(&d.betas, &f32s(&t["betas"]));
+    assert!(e <= 5e-6, "betas: {e:.2e}");
+    let e = max_abs(&d.alphas_cumprod, &f32s(&t["alphas_cumprod"]));
+    assert!(e <= 1e-6, "alphas_cumprod: {e:.2e}");
+    assert!((d.final_alpha_cumprod - f32s(&t["final_alpha_cumprod"])[0]).abs() <= 1e-7);
+    for n in [1usize, 3, 4, 10, 16] {
+        let want: Vec<i64> = t[&format!("n{n}.timesteps")]
+            .to_dtype(DType::I64)
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        let got: Vec<i64> = d.timesteps(n).unwrap().iter().map(|&x| x as i64).collect();
+        assert_eq!(got, want, "timesteps for {n} steps");
+        let at = f32s(&t[&format!("n{n}.alpha_t")]);
+        let ap = f32s(&t[&format!("n{n}.alpha_prev")]);
+        for (k, &ts) in d.timesteps(n).unwrap().iter().enumerate() {
+            let a = d.alphas(ts, n);
+            assert!((a.alpha_prod_t - at[k]).abs() <= 1e-6, "n={n} step {k}: ᾱ_t");
+            assert!((a.alpha_prod_t_prev - ap[k]).abs() <= 1e-6, "n={n} step {k}: ᾱ_prev");
+        }
+    }
+}
+
+/// Runs one checkpoint against its case file.
+fn parity(folder: &str, case_file: &str, variant: IidVariant) {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join(folder);
+    copy_dir(&fixtures().join(folder), &dir);
+    let dev = Device::Cpu;
+    let m = Marigold::load(&dir, &dev).unwrap();
+    assert_eq!(m.variant(), Some(variant));
+    let case = load(case_file);
+    close("empty embedding", m.empty_embedding(), &case["empty_embedding"], 1e-5);
+    // The embedding was cached: a second load reads it (and gives the same).
+    assert!(dir.join("text_encoder/pixl-empty-embedding.safetensors").is_file());
+    let again = Marigold::load(&dir, &dev).unwrap();
+    close("cached embedding", again.empty_embedding(), m.empty_embedding(), 0.0);
+
+    let img = photo(&case);
+    let res = 32;
+    let pre = m.preprocess(&img, res).unwrap();
+    close("preprocessed image", &pre.image, &case["image_processed"], 1e-5);
+    let pad: Vec<i64> = case["padding"].to_dtype(DType::I64).unwrap().to_vec1().unwrap();
+    assert_eq!((pre.padding.0 as i64, pre.padding.1 as i64), (pad[0], pad[1]));
+    let lat = m.encode(&pre.image).unwrap();
+    close("image latent", &lat, &case["image_latent"], 1e-4);
+
+    for e in [1usize, 3] {
+        let noise = &case[&format!("e{e}.noise")];
+        // UNet output of the first step, all members together.
+        let t0 = m.scheduler().timesteps(4).unwrap()[0];
+        let il = lat.repeat((e, 1, 1, 1)).unwrap();
+        let out = m.unet(&il, noise, t0).unwrap();
+        close(&format!("e{e} step 0 UNet output"), &out, &case[&format!("e{e}.step0.unet_out")], 1e-3);
+        // Every step's latent, member by member.
+        for k in 0..e {
+            let mut steps: Vec<Tensor> = Vec::new();
+            let z = noise.narrow(0, k, 1).unwrap();
+            m.denoise(&lat, &z, 4, &mut |_, l| steps.push(l.clone())).unwrap();
+            assert_eq!(steps.len(), 4);
+            for (s, l) in steps.iter().enumerate() {
+                let want = case[&format!("e{e}.step{s}.latent")].narrow(0, k, 1).unwrap();
+                close(&format!("e{e} member {k} step {s} latent"), l, &want, 1e-3);
+            }
+        }
+        let opts = MarigoldOptions {
+            steps: Some(4),
+            ensemble: e,
+            resolution: Some(res),
+            ..Default::default()
+        };
+        let pred = m.predict_with_noise(&img, &opts, noise, &mut |_| {}).unwrap();
+        let want = &case[&format!("e{e}.prediction")];
+        let (t, _, h, w) = want.dims4().unwrap();
+        assert_eq!(pred.maps.len(), t);
+        for (i, (target, map)) in pred.maps.iter().enumerate() {
+            assert_eq!(target.name, variant.target_names()[i]);
+            assert_eq!((map.width, map.height, map.channels), (w, h, 3));
+            let planar: Vec<f32> = (0..3 * h * w)
+                .map(|j| {
+                    let (c, p) = (j / (h * w), j % (h * w));
+                    map.data[p * 3 + c]
+                })
+                .collect();
+            let e_ = max_abs(&planar, &f32s(&want.narrow(0, i, 1).unwrap()));
+            eprintln!("e{e} prediction {}: max abs error {e_:.2e}", target.name);
+            assert!(e_ <= 1e-3, "e{e} {}: max abs error {e_:.3e}", target.name);
+        }
+    }
+}
+
+#[test]
+fn appearance_matches_diffusers() {
+    parity("appearance", "appearance_case.safetensors", IidVariant::Appearance);
+}
+
+#[test]
+fn lighting_from_fp16_files_matches_diffusers() {
+    parity("lighting", "lighting_case.safetensors", IidVariant::Lighting);
+}
+
+#[test]
+fn ensemble_reduction_matches_torch() {
+    let case = load("appearance_case.safetensors");
+    let x = &case["ensemble.input"];
+    let n = x.dim(0).unwrap();
+    let members: Vec<Vec<f32>> = (0..n).map(|i| f32s(&x.narrow(0, i, 1).unwrap())).collect();
+    let refs: Vec<&[f32]> = members.iter().map(Vec::as_slice).collect();
+    let med = reduce(&refs, Reduction::Median);
+    assert_eq!(max_abs(&med, &f32s(&case["ensemble.median"])), 0.0, "median");
+    let mean = reduce(&refs, Reduction::Mean);
+    assert!(max_abs(&mean, &f32s(&case["ensemble.mean"])) <= 1e-6, "mean");
+}
