@@ -9,7 +9,9 @@ use pixl_core::Image;
 use std::path::{Path, PathBuf};
 
 fn fixture(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/marigold").join(name)
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fixtures/marigold")
+        .join(name)
 }
 
 /// A models folder with the fixture `src` (appearance | lighting) installed as `as_name`.
@@ -139,7 +141,11 @@ fn bad_checkpoints_are_refused_and_nothing_is_written() {
     let m = models(&t.path().join("c"), "lighting", "marigold-lighting");
     let idx = m.join("marigold-lighting/model_index.json");
     let text = std::fs::read_to_string(&idx).unwrap();
-    std::fs::write(&idx, text.replace("MarigoldIntrinsicsPipeline", "MarigoldDepthPipeline")).unwrap();
+    std::fs::write(
+        &idx,
+        text.replace("MarigoldIntrinsicsPipeline", "MarigoldDepthPipeline"),
+    )
+    .unwrap();
     let err = fails(t.path(), &["estimate", "lighting", ps, "-o", cs, "--res", "32"], &m);
     assert!(err.contains("not a Marigold intrinsics"), "{err}");
     assert!(!ct.exists());
@@ -151,7 +157,10 @@ fn bad_checkpoints_are_refused_and_nothing_is_written() {
     assert!(text.contains("v_prediction"));
     std::fs::write(&sc, text.replace("v_prediction", "flow_prediction")).unwrap();
     let err = fails(t.path(), &["estimate", "lighting", ps, "-o", cs, "--res", "32"], &m);
-    assert!(err.contains("prediction_type") && err.contains("flow_prediction"), "{err}");
+    assert!(
+        err.contains("prediction_type") && err.contains("flow_prediction"),
+        "{err}"
+    );
     assert!(!ct.exists());
 
     // A processing resolution the VAE cannot take.
@@ -188,7 +197,10 @@ fn reconstruct_textures_the_scene_with_estimated_materials() {
         assert!(out.join(f).is_file(), "{f}");
     }
     let scene = std::fs::read_to_string(out.join("scene.toml")).unwrap();
-    assert!(scene.contains("albedo.png") && scene.contains("roughness.png"), "{scene}");
+    assert!(
+        scene.contains("albedo.png") && scene.contains("roughness.png"),
+        "{scene}"
+    );
 }
 
 /// A MIIW-like tree: two scenes (one in the test split) with two lights each.
@@ -216,7 +228,16 @@ fn prepare_targets_writes_resumes_and_feeds_the_loader() {
     let spec = format!("miiw:{}", root.display());
     let prep = |extra: &[&str]| {
         let (o, stdout, err) = run(pixl(t.path())
-            .args(["prepare-targets", "--dataset", &spec, "--res", "32", "--steps", "1", "--json"])
+            .args([
+                "prepare-targets",
+                "--dataset",
+                &spec,
+                "--res",
+                "32",
+                "--steps",
+                "1",
+                "--json",
+            ])
             .args(extra)
             .arg("--models")
             .arg(&m));
@@ -232,14 +253,24 @@ fn prepare_targets_writes_resumes_and_feeds_the_loader() {
     assert_eq!(v["already_cached"], 3);
     let before: Vec<_> = images
         .iter()
-        .map(|p| std::fs::metadata(pixl_data::ct_cache_path(p)).unwrap().modified().unwrap())
+        .map(|p| {
+            std::fs::metadata(pixl_data::ct_cache_path(p))
+                .unwrap()
+                .modified()
+                .unwrap()
+        })
         .collect();
     let v = prep(&[]);
     assert_eq!(v["written"].as_array().unwrap().len(), 0);
     assert_eq!(v["already_cached"], 4);
     let after: Vec<_> = images
         .iter()
-        .map(|p| std::fs::metadata(pixl_data::ct_cache_path(p)).unwrap().modified().unwrap())
+        .map(|p| {
+            std::fs::metadata(pixl_data::ct_cache_path(p))
+                .unwrap()
+                .modified()
+                .unwrap()
+        })
         .collect();
     assert_eq!(before, after, "a second run rewrote finished targets");
     // The training loader reads them, for both splits.

@@ -1,4 +1,4 @@
-//! Fused elementwise steps of the DA3 network, parallel on the CPU.
+//! Fused elementwise steps of the estimators' networks (DA3, Marigold's VAE), parallel on the CPU.
 //!
 //! candle's CPU elementwise kernels run on one thread, and every bias add, GELU, ReLU, LayerScale
 //! and residual add would be a separate pass over memory. These ops do each step in one
@@ -21,6 +21,8 @@ pub enum Act {
     /// Exact GELU, `0.5·x·(1 + erf(x/√2))` (candle's `gelu_erf` arithmetic).
     Gelu,
     Relu,
+    /// SiLU, `x / (1 + e^(−x))` (candle's `silu` arithmetic).
+    Silu,
 }
 
 impl Act {
@@ -30,6 +32,7 @@ impl Act {
             Act::None => v,
             Act::Gelu => (candle_core::cpu::erf::erf_f32(v * std::f32::consts::FRAC_1_SQRT_2) + 1.0) * 0.5 * v,
             Act::Relu => v.max(0.0),
+            Act::Silu => v / (1.0 + (-v).exp()),
         }
     }
 
@@ -38,6 +41,7 @@ impl Act {
             Act::None => Ok(xs),
             Act::Gelu => xs.gelu_erf(),
             Act::Relu => xs.relu(),
+            Act::Silu => candle_nn::ops::silu(&xs),
         }
     }
 }
@@ -293,6 +297,51 @@ pub fn bias_residual_channels(xs: &Tensor, bias: &Vector, residual: &Tensor, act
         act,
     };
     xs.contiguous()?.apply_op2_no_bwd(&residual.contiguous()?, &op)
+}
+
+/// `act(GroupNorm(xs))` on `(B, C, …)`: per sample and group of `C/groups` channels, the mean
+/// and biased variance over the group (accumulated in f64), `(x − μ)/√(σ² + eps)·γ[c] + β[c]`,
+/// then the activation; one parallel pass per group. Elsewhere candle's ops.
+pub fn group_norm_act(xs: &Tensor, groups: usize, eps: f64, gamma: &Vector, beta: &Vector, act: Act) -> Result<Tensor> {
+    gamma.check(xs, false)?;
+    beta.check(xs, false)?;
+    let dims = xs.dims().to_vec();
+    let (b, c) = (dims[0], dims[1]);
+    if groups == 0 || c % groups != 0 {
+        candle_core::bail!("group norm: {groups} groups do not divide {c} channels");
+    }
+    if !cpu_f32(xs) {
+        let g = xs.reshape((b, groups, ()))?;
+        let mean = g.mean_keepdim(2)?;
+        let centred = g.broadcast_sub(&mean)?;
+        let var = centred.sqr()?.mean_keepdim(2)?;
+        let normed = centred.broadcast_div(&(var + eps)?.sqrt()?)?.reshape(dims.as_slice())?;
+        let y = normed
+            .broadcast_mul(&gamma.broadcastable(xs, false)?)?
+            .broadcast_add(&beta.broadcastable(xs, false)?)?;
+        return act.apply_tensor(y);
+    }
+    let src = xs.contiguous()?.flatten_all()?.to_vec1::<f32>()?;
+    let plane = src.len() / (b * c).max(1);
+    let per_group = (c / groups) * plane;
+    let mut out = vec![0f32; src.len()];
+    let (gv, bv) = (gamma.values(), beta.values());
+    out.par_chunks_mut(per_group)
+        .zip(src.par_chunks(per_group))
+        .enumerate()
+        .for_each(|(k, (dst, x))| {
+            let n = x.len().max(1) as f64;
+            let mean = x.iter().map(|&v| v as f64).sum::<f64>() / n;
+            let var = x.iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>() / n;
+            let rstd = (1.0 / (var + eps).sqrt()) as f32;
+            let mean = mean as f32;
+            let first = (k % groups) * (c / groups);
+            for (j, (d, &v)) in dst.iter_mut().zip(x).enumerate() {
+                let ch = first + j / plane;
+                *d = act.apply((v - mean) * rstd * gv[ch] + bv[ch]);
+            }
+        });
+    Tensor::from_vec(out, dims, xs.device())
 }
 
 /// `xs + ys·gamma`, `gamma` over the last dim (LayerScale on a residual branch).

@@ -126,7 +126,11 @@ const MARIGOLD_IID_FILES: &[ModelFile] = &[
     ),
     ModelFile::new("text_encoder/config.json", 1_000),
     // Run once: the empty-prompt embedding is cached beside it.
-    ModelFile::or("text_encoder/model.fp16.safetensors", "text_encoder/model.safetensors", 681_000_000),
+    ModelFile::or(
+        "text_encoder/model.fp16.safetensors",
+        "text_encoder/model.safetensors",
+        681_000_000,
+    ),
     ModelFile::new("tokenizer/vocab.json", 1_060_000),
     ModelFile::new("tokenizer/tokenizer_config.json", 1_000),
 ];

@@ -180,10 +180,13 @@ model_index.json, scheduler/, unet/, vae/, text_encoder/, tokenizer/)"
             }
         };
         let weights = |sub: &str, stem: &str| -> Option<PathBuf> {
-            [format!("{sub}/{stem}.safetensors"), format!("{sub}/{stem}.fp16.safetensors")]
-                .into_iter()
-                .map(|r| dir.join(r))
-                .find(|p| p.is_file())
+            [
+                format!("{sub}/{stem}.safetensors"),
+                format!("{sub}/{stem}.fp16.safetensors"),
+            ]
+            .into_iter()
+            .map(|r| dir.join(r))
+            .find(|p| p.is_file())
         };
         let missing_weights = |sub: &str, stem: &str| EstimateError::Config {
             path: dir.to_owned(),
@@ -199,9 +202,11 @@ model_index.json, scheduler/, unet/, vae/, text_encoder/, tokenizer/)"
             model_index,
             scheduler: need("scheduler/scheduler_config.json")?,
             unet_config: need("unet/config.json")?,
-            unet: weights("unet", "diffusion_pytorch_model").ok_or_else(|| missing_weights("unet", "diffusion_pytorch_model"))?,
+            unet: weights("unet", "diffusion_pytorch_model")
+                .ok_or_else(|| missing_weights("unet", "diffusion_pytorch_model"))?,
             vae_config: need("vae/config.json")?,
-            vae: weights("vae", "diffusion_pytorch_model").ok_or_else(|| missing_weights("vae", "diffusion_pytorch_model"))?,
+            vae: weights("vae", "diffusion_pytorch_model")
+                .ok_or_else(|| missing_weights("vae", "diffusion_pytorch_model"))?,
             text_config: need("text_encoder/config.json")?,
             text,
             tokenizer: dir.join("tokenizer"),
@@ -226,11 +231,9 @@ fn config<T>(path: &Path, parse: impl FnOnce(&str) -> Result<T, String>) -> Resu
 
 fn var_builder(path: &Path, device: &Device) -> Result<VarBuilder<'static>, EstimateError> {
     // SAFETY (mmap): the file is opened read-only and not modified while mapped.
-    unsafe { VarBuilder::from_mmaped_safetensors(&[path], DType::F32, device) }.map_err(|e| {
-        EstimateError::Weights {
-            path: path.to_owned(),
-            reason: e.to_string(),
-        }
+    unsafe { VarBuilder::from_mmaped_safetensors(&[path], DType::F32, device) }.map_err(|e| EstimateError::Weights {
+        path: path.to_owned(),
+        reason: e.to_string(),
     })
 }
 

@@ -19,12 +19,19 @@ fn load(name: &str) -> HashMap<String, Tensor> {
 }
 
 fn f32s(t: &Tensor) -> Vec<f32> {
-    t.to_dtype(DType::F32).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    t.to_dtype(DType::F32)
+        .unwrap()
+        .flatten_all()
+        .unwrap()
+        .to_vec1::<f32>()
+        .unwrap()
 }
 
 fn max_abs(a: &[f32], b: &[f32]) -> f64 {
     assert_eq!(a.len(), b.len(), "lengths differ");
-    a.iter().zip(b).fold(0f64, |m, (&x, &y)| m.max((x as f64 - y as f64).abs()))
+    a.iter()
+        .zip(b)
+        .fold(0f64, |m, (&x, &y)| m.max((x as f64 - y as f64).abs()))
 }
 
 fn close(what: &str, got: &Tensor, want: &Tensor, tol: f64) {
@@ -117,7 +124,12 @@ fn parity(folder: &str, case_file: &str, variant: IidVariant) {
         let t0 = m.scheduler().timesteps(4).unwrap()[0];
         let il = lat.repeat((e, 1, 1, 1)).unwrap();
         let out = m.unet(&il, noise, t0).unwrap();
-        close(&format!("e{e} step 0 UNet output"), &out, &case[&format!("e{e}.step0.unet_out")], 1e-3);
+        close(
+            &format!("e{e} step 0 UNet output"),
+            &out,
+            &case[&format!("e{e}.step0.unet_out")],
+            1e-3,
+        );
         // Every step's latent, member by member.
         for k in 0..e {
             let mut steps: Vec<Tensor> = Vec::new();

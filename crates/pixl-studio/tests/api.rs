@@ -494,5 +494,8 @@ async fn a_sideways_phone_photo_is_shown_upright() {
     let (s, body) = call(&router, "POST", "/api/photo?name=phone.jpg", sideways_jpeg(80, 60)).await;
     assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
     let v: Value = serde_json::from_slice(&body).unwrap();
-    assert_eq!((v["photo"]["width"].clone(), v["photo"]["height"].clone()), (json!(60), json!(80)));
+    assert_eq!(
+        (v["photo"]["width"].clone(), v["photo"]["height"].clone()),
+        (json!(60), json!(80))
+    );
 }

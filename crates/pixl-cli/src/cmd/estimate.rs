@@ -40,14 +40,12 @@ Then: pixl reconstruct --image photo.jpg --depth depth.exr -o scene/ (metric), o
     )]
     Depth(DepthArgs),
     /// Albedo, roughness and metallic maps of a photo with Marigold-IID Appearance.
-    #[command(
-        after_help = "Examples:\n  pixl estimate materials photo.jpg -o materials/\n  \
+    #[command(after_help = "Examples:\n  pixl estimate materials photo.jpg -o materials/\n  \
 pixl estimate materials photo.jpg -o materials/ --res 512 --ensemble 3 --json\n\n\
 Writes albedo.exr (linear), albedo.png (sRGB), roughness.exr and metallic.exr into the folder \
 (created if missing; must be empty unless --force).\nThen: pixl reconstruct --image photo.jpg --albedo materials/albedo.png \
 --roughness materials/roughness.exr --metallic materials/metallic.exr -o scene/ (or just --materials marigold).\n\
-On a CPU one photo takes minutes at 768 px (the time is shown before it starts)."
-    )]
+On a CPU one photo takes minutes at 768 px (the time is shown before it starts).")]
     Materials(MaterialsArgs),
     /// The photo's own C_T (albedo, diffuse shading, residual) with Marigold-IID Lighting.
     #[command(

@@ -68,7 +68,12 @@ fn describe(v: Option<IidVariant>, names: &[&str]) -> String {
 
 /// Finds (or downloads) the weights of `variant` and loads them; a checkpoint of the other
 /// variant is refused with both target lists named.
-pub fn load(variant: IidVariant, device: &str, weights: &WeightsArgs, ctx: &Ctx) -> anyhow::Result<(Marigold, Resolved)> {
+pub fn load(
+    variant: IidVariant,
+    device: &str,
+    weights: &WeightsArgs,
+    ctx: &Ctx,
+) -> anyhow::Result<(Marigold, Resolved)> {
     let spec = hub::lookup(model_name(variant))?;
     let hub = weights.hub();
     let resolved = super::models::resolve(&hub, spec, ctx)?;

@@ -38,7 +38,9 @@ fn f64_of(o: &Obj, k: &str, default: f64) -> Result<f64, String> {
 fn bool_of(o: &Obj, k: &str, default: bool) -> Result<bool, String> {
     match o.get(k) {
         None | Some(Value::Null) => Ok(default),
-        Some(v) => v.as_bool().ok_or_else(|| format!("`{k}` must be true or false, found {v}")),
+        Some(v) => v
+            .as_bool()
+            .ok_or_else(|| format!("`{k}` must be true or false, found {v}")),
     }
 }
 
@@ -52,7 +54,11 @@ fn usize_list(o: &Obj, k: &str) -> Result<Vec<usize>, String> {
         .and_then(Value::as_array)
         .ok_or_else(|| format!("`{k}` must be a list of integers"))?;
     a.iter()
-        .map(|v| v.as_u64().map(|x| x as usize).ok_or_else(|| format!("`{k}` must be a list of integers")))
+        .map(|v| {
+            v.as_u64()
+                .map(|x| x as usize)
+                .ok_or_else(|| format!("`{k}` must be a list of integers"))
+        })
         .collect()
 }
 
@@ -62,7 +68,11 @@ fn str_list(o: &Obj, k: &str) -> Result<Vec<String>, String> {
         .and_then(Value::as_array)
         .ok_or_else(|| format!("`{k}` must be a list of names"))?;
     a.iter()
-        .map(|v| v.as_str().map(str::to_string).ok_or_else(|| format!("`{k}` must be a list of names")))
+        .map(|v| {
+            v.as_str()
+                .map(str::to_string)
+                .ok_or_else(|| format!("`{k}` must be a list of names"))
+        })
         .collect()
 }
 
@@ -139,7 +149,10 @@ MarigoldIntrinsicsPipeline"
             if space == PredictionSpace::Stack && sub_targets.len() != 3 {
                 return Err(format!("target_properties.{name}.sub_target_names must have 3 entries"));
             }
-            let up_to_scale = p.map(|p| bool_of(p, "up_to_scale", false)).transpose()?.unwrap_or(false);
+            let up_to_scale = p
+                .map(|p| bool_of(p, "up_to_scale", false))
+                .transpose()?
+                .unwrap_or(false);
             targets.push(Target {
                 name,
                 space,
@@ -272,10 +285,14 @@ impl UnetConfig {
         // groups whatever the config says; SD2 (and so Marigold) uses 32.
         let norm_num_groups = usize_of(&o, "norm_num_groups", Some(32))?;
         if norm_num_groups != 32 {
-            return Err(format!("norm_num_groups {norm_num_groups} is not supported (the SD2 UNet uses 32)"));
+            return Err(format!(
+                "norm_num_groups {norm_num_groups} is not supported (the SD2 UNet uses 32)"
+            ));
         }
         if channels.iter().any(|c| c % norm_num_groups != 0) {
-            return Err(format!("norm_num_groups {norm_num_groups} must divide every block's channels"));
+            return Err(format!(
+                "norm_num_groups {norm_num_groups} must divide every block's channels"
+            ));
         }
         let candle = UNet2DConditionModelConfig {
             center_input_sample: false,
@@ -324,7 +341,10 @@ impl VaeConfig {
         }
         let block_out_channels = usize_list(&o, "block_out_channels")?;
         let n = block_out_channels.len();
-        for (k, want) in [("down_block_types", "DownEncoderBlock2D"), ("up_block_types", "UpDecoderBlock2D")] {
+        for (k, want) in [
+            ("down_block_types", "DownEncoderBlock2D"),
+            ("up_block_types", "UpDecoderBlock2D"),
+        ] {
             if o.contains_key(k) {
                 let v = str_list(&o, k)?;
                 if v.len() != n || v.iter().any(|t| t != want) {
@@ -340,7 +360,9 @@ impl VaeConfig {
         }
         let norm_num_groups = usize_of(&o, "norm_num_groups", Some(32))?;
         if norm_num_groups == 0 || block_out_channels.iter().any(|c| c % norm_num_groups != 0) {
-            return Err(format!("norm_num_groups {norm_num_groups} must divide every block's channels"));
+            return Err(format!(
+                "norm_num_groups {norm_num_groups} must divide every block's channels"
+            ));
         }
         let cfg = Self {
             in_channels: usize_of(&o, "in_channels", Some(3))?,

@@ -52,8 +52,7 @@ pub struct SchedulerConfig {
 impl SchedulerConfig {
     /// Parses diffusers' `scheduler_config.json`; `Err` names the offending key.
     pub fn from_json(text: &str) -> Result<Self, String> {
-        let v: serde_json::Value =
-            serde_json::from_str(text).map_err(|e| format!("not valid JSON: {e}"))?;
+        let v: serde_json::Value = serde_json::from_str(text).map_err(|e| format!("not valid JSON: {e}"))?;
         let obj = v.as_object().ok_or("not a JSON object")?;
         let class = obj.get("_class_name").and_then(|c| c.as_str()).unwrap_or("");
         if class != "DDIMScheduler" {
@@ -83,8 +82,10 @@ impl SchedulerConfig {
             }
         };
         let num_train_timesteps = num("num_train_timesteps", 1000.0)?;
-        if !(num_train_timesteps >= 1.0 && num_train_timesteps <= 100_000.0 && num_train_timesteps.fract() == 0.0) {
-            return Err(format!("`num_train_timesteps` {num_train_timesteps} must be a positive integer"));
+        if !((1.0..=100_000.0).contains(&num_train_timesteps) && num_train_timesteps.fract() == 0.0) {
+            return Err(format!(
+                "`num_train_timesteps` {num_train_timesteps} must be a positive integer"
+            ));
         }
         let scaled_linear = match text_key("beta_schedule", "linear")?.as_str() {
             "scaled_linear" => true,
@@ -127,7 +128,9 @@ impl SchedulerConfig {
         let beta_start = num("beta_start", 0.0001)?;
         let beta_end = num("beta_end", 0.02)?;
         if !(beta_start > 0.0 && beta_end >= beta_start && beta_end < 1.0) {
-            return Err(format!("betas {beta_start}..{beta_end} must satisfy 0 < start ≤ end < 1"));
+            return Err(format!(
+                "betas {beta_start}..{beta_end} must satisfy 0 < start ≤ end < 1"
+            ));
         }
         let steps_offset = num("steps_offset", 0.0)?;
         Ok(Self {
@@ -198,7 +201,11 @@ impl Ddim {
             betas = rescale_zero_terminal_snr(&betas);
         }
         let alphas_cumprod = cumprod(betas.iter().map(|b| 1.0 - b));
-        let final_alpha_cumprod = if config.set_alpha_to_one { 1.0 } else { alphas_cumprod[0] };
+        let final_alpha_cumprod = if config.set_alpha_to_one {
+            1.0
+        } else {
+            alphas_cumprod[0]
+        };
         Self {
             config,
             betas,

@@ -82,7 +82,10 @@ impl TextEncoder {
             candle_core::bail!("text encoder: {n} tokens (1..={})", self.cfg.max_position_embeddings);
         }
         if let Some(bad) = ids.iter().find(|&&i| i as usize >= self.cfg.vocab_size) {
-            candle_core::bail!("text encoder: token id {bad} outside the vocabulary ({})", self.cfg.vocab_size);
+            candle_core::bail!(
+                "text encoder: token id {bad} outside the vocabulary ({})",
+                self.cfg.vocab_size
+            );
         }
         let dev = self.token.device();
         let idx = Tensor::new(ids, dev)?;
@@ -95,9 +98,8 @@ impl TextEncoder {
             .map(|k| if k % n > k / n { f32::NEG_INFINITY } else { 0.0 })
             .collect();
         let mask = Tensor::from_vec(mask, (n, n), dev)?;
-        let split = |t: Tensor| -> candle_core::Result<Tensor> {
-            t.reshape((1, n, heads, hd))?.transpose(1, 2)?.contiguous()
-        };
+        let split =
+            |t: Tensor| -> candle_core::Result<Tensor> { t.reshape((1, n, heads, hd))?.transpose(1, 2)?.contiguous() };
         for l in &self.layers {
             let h = l.ln1.forward(&x)?;
             let q = split((l.q.forward(&h)? * scale)?)?;
@@ -162,7 +164,9 @@ pub fn empty_prompt_ids(tokenizer_dir: &Path) -> Result<[u32; 2], EstimateError>
 /// The cached embedding if present and well-formed.
 pub fn read_cache(text_dir: &Path, hidden: Option<usize>, device: &Device) -> Option<Tensor> {
     let p = text_dir.join(CACHE_FILE);
-    let t = candle_core::safetensors::load(&p, device).ok()?.remove("empty_embedding")?;
+    let t = candle_core::safetensors::load(&p, device)
+        .ok()?
+        .remove("empty_embedding")?;
     let dims = t.dims().to_vec();
     let ok = dims.len() == 3 && dims[0] == 1 && dims[1] >= 1 && hidden.is_none_or(|h| dims[2] == h);
     if !ok {
