@@ -27,8 +27,9 @@ pub enum DataError {
     /// An image with neither exact nor cached target intrinsics.
     #[error(
         "{image}: no target intrinsics C_T: expected the cached file {expected} beside the image. \
-         Produce it with `pixl compose` from render passes, or with an external intrinsic decomposer \
-         (e.g. Marigold-IID-Lighting) writing a C_T EXR (`pixl intrinsics` describes the format)"
+         Produce it with `pixl prepare-targets --dataset KIND:ROOT` (Marigold-IID Lighting), with \
+         `pixl compose` from render passes, or with any decomposer writing a C_T EXR \
+         (`pixl intrinsics` describes the format)"
     )]
     MissingIntrinsics { image: PathBuf, expected: PathBuf },
     /// A dataset file (e.g. a `pixl synth` manifest) that is readable but wrong.
