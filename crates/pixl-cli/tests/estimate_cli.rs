@@ -2,9 +2,11 @@
 //! initialised Depth Anything 3 checkpoint in `fixtures/da3/tiny` (or `$PIXL_DA3_TINY`), and
 //! their bad inputs at the binary level: each a clear error, exit 1, nothing written. No test
 //! touches the network (`--offline`, a private HOME, a closed endpoint).
+mod common;
+use common::{pixl, run};
 use pixl_core::Image;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 
 /// The tiny checkpoint folder (config.json + model.safetensors).
 fn tiny() -> PathBuf {
@@ -33,32 +35,6 @@ fn models_dir(root: &Path, name: &str, edit: impl Fn(&str) -> String) -> PathBuf
 /// The tiny checkpoint as a metric model (the fixture is `da3mono-tiny`).
 fn as_metric(cfg: &str) -> String {
     cfg.replace("da3mono", "da3metric")
-}
-
-fn pixl(home: &Path) -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_pixl"));
-    for v in [
-        "PIXL_MODELS_DIR",
-        "HF_HUB_CACHE",
-        "HUGGINGFACE_HUB_CACHE",
-        "HF_HOME",
-        "XDG_CACHE_HOME",
-        "HF_TOKEN",
-        "HF_HUB_OFFLINE",
-    ] {
-        c.env_remove(v);
-    }
-    c.env("HOME", home)
-        .env("PIXL_OFFLINE", "1")
-        .env("HF_ENDPOINT", "http://127.0.0.1:9");
-    c
-}
-
-fn run(c: &mut Command) -> (Output, String, String) {
-    let o = c.output().expect("run pixl");
-    let out = String::from_utf8_lossy(&o.stdout).into_owned();
-    let err = String::from_utf8_lossy(&o.stderr).into_owned();
-    (o, out, err)
 }
 
 fn photo(path: &Path, w: usize, h: usize) {

@@ -386,13 +386,13 @@ impl Marigold {
     pub fn approx_tflop(&self, width: usize, height: usize, opts: &MarigoldOptions) -> Option<f64> {
         let released = self.unet_cfg.candle.blocks.first()?.out_channels == 320
             && self.vae_cfg.block_out_channels.first() == Some(&128);
-        if !released || width == 0 || height == 0 {
+        if !released {
             return None;
         }
         let (steps, res) = self.resolve(opts).ok()?;
-        let mx = width.max(height);
         let f = self.vae_cfg.scale_factor();
-        let (nh, nw) = ((height * res / mx).div_ceil(f) * f, (width * res / mx).div_ceil(f) * f);
+        let (nh, nw) = resized_size(width, height, res).ok()?;
+        let (nh, nw) = (nh.div_ceil(f) * f, nw.div_ceil(f) * f);
         let area = (nh * nw) as f64 / (768.0 * 768.0);
         let t = self.pipeline.targets.len() as f64;
         Some(area * (2.6 + opts.ensemble as f64 * (steps as f64 * 2.14 + t * 5.75)))
@@ -401,16 +401,7 @@ impl Marigold {
     /// Step 1: `(1, 3, H', W')` in [−1, 1], resized and padded.
     pub fn preprocess(&self, photo: &Image, resolution: usize) -> Result<Preprocessed, EstimateError> {
         let (w, h) = (photo.width, photo.height);
-        if w == 0 || h == 0 {
-            return Err(EstimateError::Input("the photo is empty".into()));
-        }
-        let mx = w.max(h);
-        let (nh, nw) = (h * resolution / mx, w * resolution / mx);
-        if nh == 0 || nw == 0 {
-            return Err(EstimateError::Input(format!(
-                "extreme aspect ratio of the photo ({w}x{h}): one side would be 0 pixels at {resolution}"
-            )));
-        }
+        let (nh, nw) = resized_size(w, h, resolution)?;
         let c = photo.channels;
         let mut planar = vec![0.0f32; 3 * h * w];
         for i in 0..h * w {
@@ -489,9 +480,7 @@ impl Marigold {
     ) -> Result<IidPrediction, EstimateError> {
         let (_, res) = self.resolve(opts)?;
         let f = self.vae_cfg.scale_factor();
-        let (w, h) = (photo.width, photo.height);
-        let mx = w.max(h).max(1);
-        let (nh, nw) = (h * res / mx, w * res / mx);
+        let (nh, nw) = resized_size(photo.width, photo.height, res)?;
         let (lh, lw) = (nh.div_ceil(f), nw.div_ceil(f));
         let c = self.target_latent_channels();
         let mut rng = pixl_core::rng::Rng::new(opts.seed);
@@ -564,6 +553,22 @@ impl Marigold {
             ensemble: opts.ensemble,
         })
     }
+}
+
+/// The photo's size `(height, width)` once its longest side is `res` (diffusers:
+/// `h·res // max(h, w)`, before padding); an error for an empty photo or a side that rounds to 0.
+fn resized_size(w: usize, h: usize, res: usize) -> Result<(usize, usize), EstimateError> {
+    if w == 0 || h == 0 {
+        return Err(EstimateError::Input("the photo is empty".into()));
+    }
+    let mx = w.max(h);
+    let (nh, nw) = (h * res / mx, w * res / mx);
+    if nh == 0 || nw == 0 {
+        return Err(EstimateError::Input(format!(
+            "extreme aspect ratio of the photo ({w}x{h}): one side would be 0 pixels at {res}"
+        )));
+    }
+    Ok((nh, nw))
 }
 
 /// Per-element median (lower median for an even count, as `torch.median`) or mean.
