@@ -54,15 +54,23 @@ impl Ctx {
     /// Prints a line on stdout unless `--quiet` or `--json`.
     pub fn say(&self, line: impl AsRef<str>) {
         if !self.quiet && !self.json {
-            println!("{}", line.as_ref());
+            stdout_line(line.as_ref());
         }
     }
 
     /// Prints a JSON document on stdout (even under `--quiet`).
     pub fn print_json(&self, value: &serde_json::Value) -> anyhow::Result<()> {
-        println!("{}", serde_json::to_string_pretty(value)?);
+        stdout_line(&serde_json::to_string_pretty(value)?);
         Ok(())
     }
+}
+
+/// One line on stdout. A reader that went away (`pixl … | head`) is not an error of ours: the
+/// rest of the output is dropped quietly instead of panicking as `println!` does.
+fn stdout_line(text: &str) {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    let _ = writeln!(out, "{text}").and_then(|()| out.flush());
 }
 
 /// Whether to colour stderr: it is a terminal and `NO_COLOR` is unset or empty

@@ -8,6 +8,7 @@ use std::process::ExitCode;
 
 mod cmd;
 mod ctx;
+mod device;
 mod report;
 
 pub use ctx::Ctx;
@@ -89,6 +90,9 @@ Lookup: --models DIR (or PIXL_MODELS_DIR), then the Hugging Face cache (HF_HUB_C
     Estimate(cmd::estimate::Command),
     /// Place lights on a photo in the browser and watch it relight (a local web page).
     Studio(cmd::studio::Args),
+    /// What this build and machine offer (features, CPU SIMD and threads, CUDA devices, where
+    /// weights are looked for): paste its output into a bug report.
+    Doctor(cmd::doctor::Args),
     /// Print a shell completion script (bash, zsh, fish, elvish, powershell) on stdout.
     #[command(
         after_help = "Examples:\n  pixl completions bash > ~/.local/share/bash-completion/completions/pixl\n  \
@@ -135,6 +139,7 @@ fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
         Command::Models(c) => cmd::models::run(c, ctx),
         Command::Estimate(c) => cmd::estimate::run(c, ctx),
         Command::Studio(a) => cmd::studio::run(a, ctx),
+        Command::Doctor(a) => cmd::doctor::run(a, ctx),
         Command::Completions { shell } => {
             use clap::CommandFactory;
             clap_complete::generate(shell, &mut Cli::command(), "pixl", &mut std::io::stdout());

@@ -506,21 +506,45 @@ fn good_input_succeeds_and_round_trips() {
     assert_eq!(a, b);
 }
 
-/// `relight --device`: an unknown device and (in a build without the `cuda` feature) CUDA are
-/// refused with a message saying so, before anything is written.
+/// `relight --device`: an unknown device, a malformed ordinal, and CUDA where this build or
+/// machine has none are refused with a message saying why, before anything is written.
 #[test]
 fn relight_on_an_unavailable_device() {
     let f = Fixture::new();
     let (src, ct, w, out) = (f.source(), f.ct("ct.exr", W, H), f.weights(), f.path("out.png"));
-    let mut args = relight_args(s(&src), s(&ct), s(&w), s(&out));
-    args.extend(["--device", "tpu"]);
-    expect_failure(&args, &["--device", "expected cpu or cuda"], &out);
-    #[cfg(not(feature = "cuda"))]
-    {
+    for (device, message) in [
+        ("tpu", "expected cpu or cuda"),
+        ("cuda0", "expected cpu or cuda[:N]"),
+        ("cuda:x", "bad CUDA ordinal"),
+    ] {
+        let mut args = relight_args(s(&src), s(&ct), s(&w), s(&out));
+        args.extend(["--device", device]);
+        expect_failure(&args, &["--device", message], &out);
+    }
+    // What `pixl doctor` says about CUDA decides the message for `--device cuda:0`.
+    let doctor = pixl(&["doctor", "--json"]);
+    assert!(doctor.status.success(), "{}", String::from_utf8_lossy(&doctor.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&doctor.stdout).unwrap();
+    assert_eq!(report["cuda"]["compiled"], cfg!(feature = "cuda"));
+    let expected = if !cfg!(feature = "cuda") {
+        Some("CUDA is not available in this build")
+    } else if report["cuda"]["unavailable"].is_string() {
+        Some("no CUDA device")
+    } else {
+        None
+    };
+    if let Some(message) = expected {
         let mut args = relight_args(s(&src), s(&ct), s(&w), s(&out));
         args.extend(["--device", "cuda:0"]);
-        expect_failure(&args, &["CUDA is not available"], &out);
+        expect_failure(&args, &["--device cuda:0", message], &out);
     }
+    let mut args = relight_args(s(&src), s(&ct), s(&w), s(&out));
+    args.extend(["--device", "cuda:99"]);
+    expect_failure(
+        &args,
+        &["--device cuda:99", expected.unwrap_or("no CUDA device 99")],
+        &out,
+    );
     // The same arguments on the CPU work (the failures above are the device's alone).
     let mut args = relight_args(s(&src), s(&ct), s(&w), s(&out));
     args.extend(["--device", "cpu"]);

@@ -108,7 +108,7 @@ pub struct DepthArgs {
     /// Focal length in pixels at the photo's resolution.
     #[arg(long)]
     pub focal: Option<f64>,
-    /// Device: cpu, or cuda[:N] (needs a build with `--features cuda`).
+    /// Device: cpu, or cuda[:N] (needs a CUDA build: scripts/cuda-setup.sh; `pixl doctor` lists devices).
     #[arg(long, default_value = "cpu")]
     pub device: String,
     /// Print a JSON summary on stdout (statistics, focal length, where the weights came from).
@@ -374,7 +374,7 @@ pub fn estimate_depth(
     let spec = hub::lookup(model.name())?;
     let hub = weights.hub();
     let resolved = super::models::resolve(&hub, spec, ctx)?;
-    let device = super::eval::parse_device(device)?;
+    let device = crate::device::parse_device(device)?;
     tracing::debug!("{}: weights from {}", spec.name, resolved.source);
     let net = Da3::load(&resolved.dir, &device)
         .with_context(|| format!("loading `{}` from {}", spec.name, resolved.dir.display()))?;

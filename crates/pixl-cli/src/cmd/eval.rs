@@ -2,8 +2,7 @@
 //! `pixl_eval::run_eval`: it opens the dataset, builds the pair list and the methods, runs, prints
 //! the table and writes `results.md`, `results.json` and `per_pair.csv` into `--out`.
 use crate::Ctx;
-use anyhow::Context as _;
-use candle_core::{DType, Device};
+use candle_core::DType;
 use pixl_data::Split;
 use pixl_eval::{baselines::Method, EvalOptions, Lpips, ModelMethod};
 use std::path::PathBuf;
@@ -55,7 +54,7 @@ pub struct Args {
     /// Print the JSON summary (method rows) on stdout instead of the table.
     #[arg(long)]
     pub json: bool,
-    /// Device for the network: cpu, or cuda[:N] (needs a build with `--features cuda`).
+    /// Device for the network: cpu, or cuda[:N] (needs a CUDA build: scripts/cuda-setup.sh; `pixl doctor` lists devices).
     #[arg(long, default_value = "cpu")]
     pub device: String,
     /// Network dtype: f32 or bf16.
@@ -67,20 +66,6 @@ pub struct Args {
     /// Timing protocol: timed runs (0: no timing).
     #[arg(long, default_value_t = pixl_eval::DEFAULT_RUNS)]
     pub runs: usize,
-}
-
-/// `cpu` or `cuda[:N]` (N defaults to 0); CUDA only in a build with `--features cuda`.
-pub(crate) fn parse_device(s: &str) -> anyhow::Result<Device> {
-    match s {
-        "cpu" => Ok(Device::Cpu),
-        _ if s.starts_with("cuda") => {
-            let ord = s.strip_prefix("cuda").and_then(|r| r.strip_prefix(':')).unwrap_or("0");
-            let ord: usize = ord.parse().with_context(|| format!("--device {s}: bad CUDA ordinal"))?;
-            Device::new_cuda(ord)
-                .with_context(|| format!("--device {s}: CUDA is not available in this build or machine"))
-        }
-        _ => anyhow::bail!("--device {s:?}: expected cpu or cuda[:N]"),
-    }
 }
 
 fn parse_dtype(s: &str) -> anyhow::Result<DType> {
@@ -128,7 +113,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             p.target.intrinsics = Some(path);
         }
     }
-    let device = parse_device(&args.device)?;
+    let device = crate::device::parse_device(&args.device)?;
     let dtype = parse_dtype(&args.dtype)?;
 
     let mut methods: Vec<Box<dyn Method>> = Vec::new();

@@ -77,7 +77,7 @@ pub fn load(
     let spec = hub::lookup(model_name(variant))?;
     let hub = weights.hub();
     let resolved = super::models::resolve(&hub, spec, ctx)?;
-    let device = super::eval::parse_device(device)?;
+    let device = crate::device::parse_device(device)?;
     let m = Marigold::load(&resolved.dir, &device)
         .with_context(|| format!("loading `{}` from {}", spec.name, resolved.dir.display()))?;
     if m.variant() != Some(variant) {

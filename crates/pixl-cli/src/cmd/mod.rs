@@ -4,6 +4,7 @@ pub mod bench;
 pub mod blender;
 pub mod compose;
 pub mod demo;
+pub mod doctor;
 pub mod estimate;
 pub mod eval;
 pub mod exif;

@@ -148,7 +148,7 @@ pub struct Args {
     /// Longest side the photo is resized to for depth estimation (without --depth).
     #[arg(long, default_value_t = 504)]
     pub process_res: usize,
-    /// Device for the estimators (depth, materials): cpu, or cuda[:N] (needs a build with `--features cuda`).
+    /// Device for the estimators (depth, materials): cpu, or cuda[:N] (needs a CUDA build: scripts/cuda-setup.sh; `pixl doctor` lists devices).
     #[arg(long, default_value = "cpu")]
     pub device: String,
     #[command(flatten)]

@@ -94,7 +94,7 @@ pub struct Args {
     /// Compute dtype of the network.
     #[arg(long, value_enum, default_value_t = super::bench::DtypeArg::F32)]
     pub dtype: super::bench::DtypeArg,
-    /// Device for the network: cpu, or cuda[:N] (needs a build with `--features cuda`).
+    /// Device for the network: cpu, or cuda[:N] (needs a CUDA build: scripts/cuda-setup.sh; `pixl doctor` lists devices).
     #[arg(long, default_value = "cpu")]
     pub device: String,
     /// Light the photo with a preset of the paper (§4.2).
@@ -438,7 +438,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
 /// `--source PHOTO --intrinsics CT`.
 fn run_with_intrinsics(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()> {
     let ct_path = args.intrinsics.as_deref().unwrap_or(Path::new(""));
-    let device = super::eval::parse_device(&args.device)?;
+    let device = crate::device::parse_device(&args.device)?;
     let net = load_network(ctx, args.weights.as_deref(), args.dtype.into(), &device)?;
     let photo = read_photo(ctx, photo_path)?;
     let size = (photo.width, photo.height);
@@ -578,7 +578,7 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
         );
         pixl_core::output::check_output_dir(dir, args.force, KEPT, &inputs)?;
     }
-    let device = super::eval::parse_device(&args.device)?;
+    let device = crate::device::parse_device(&args.device)?;
     let net = load_network(ctx, args.weights.as_deref(), args.dtype.into(), &device)?;
     let photo = read_photo(ctx, photo_path)?;
     let size = (photo.width, photo.height);

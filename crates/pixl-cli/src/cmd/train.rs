@@ -50,6 +50,10 @@ pub struct Args {
     /// config must match `[model] preset`). Ignored with `--resume`.
     #[arg(long)]
     pub init_weights: Option<PathBuf>,
+    /// Device: cpu, or cuda[:N] (a CUDA build: scripts/cuda-setup.sh; `pixl doctor` lists
+    /// devices). Resume is bit-exact on the CPU; on CUDA some reductions are not deterministic.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
     /// Print a JSON summary on stdout (even with --quiet) instead of the summary lines.
     #[arg(long)]
     pub json: bool,
@@ -74,7 +78,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         cfg.run.out_dir = o;
     }
     check_out_dir(&cfg, &args.config)?;
-    let device = candle_core::Device::Cpu;
+    let device = crate::device::parse_device(&args.device)?;
     // A resumed run restores its own weights: the fine-tuning start is not read again (and
     // need not exist any more); train.toml keeps naming it.
     let mut build_cfg = cfg.clone();

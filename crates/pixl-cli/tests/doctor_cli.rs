@@ -1,0 +1,166 @@
+//! `pixl doctor`: its JSON form against what the test finds out on its own (the machine's core
+//! count and SIMD extensions, the thread variable it sets, a models folder it fills), and its
+//! text form's sections.
+use serde_json::Value;
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn pixl(args: &[&str], env: &[(&str, &str)], home: &Path) -> Output {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_pixl"));
+    c.args(args)
+        .env_remove("PIXL_MODELS_DIR")
+        .env_remove("HF_HUB_CACHE")
+        .env_remove("HUGGINGFACE_HUB_CACHE")
+        .env_remove("HF_HOME")
+        .env_remove("XDG_CACHE_HOME")
+        .env_remove("PIXL_OFFLINE")
+        .env_remove("HF_HUB_OFFLINE")
+        .env_remove("RAYON_NUM_THREADS")
+        .env("HOME", home);
+    for (k, v) in env {
+        c.env(k, v);
+    }
+    c.output().expect("run pixl")
+}
+
+fn doctor_json(env: &[(&str, &str)], home: &Path) -> Value {
+    let o = pixl(&["doctor", "--json"], env, home);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).expect("doctor --json prints one JSON document")
+}
+
+#[test]
+fn json_matches_the_machine_and_the_environment() {
+    let home = tempfile::tempdir().unwrap();
+    let r = doctor_json(&[], home.path());
+
+    assert_eq!(r["version"], env!("CARGO_PKG_VERSION"));
+    let features: Vec<&str> = r["build"]["features"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    assert_eq!(features.contains(&"cuda"), cfg!(feature = "cuda"));
+    assert_eq!(
+        r["build"]["target"],
+        format!("{}-{}", std::env::consts::ARCH, std::env::consts::OS)
+    );
+
+    let cores = std::thread::available_parallelism().unwrap().get();
+    assert_eq!(r["cpu"]["logical_cores"], cores);
+    assert_eq!(
+        r["cpu"]["threads"], cores,
+        "without RAYON_NUM_THREADS the network uses every core"
+    );
+    #[cfg(target_arch = "x86_64")]
+    {
+        let listed: Vec<&str> = r["cpu"]["simd_features"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap())
+            .collect();
+        assert_eq!(listed.contains(&"avx2"), std::arch::is_x86_feature_detected!("avx2"));
+        assert_eq!(listed.contains(&"fma"), std::arch::is_x86_feature_detected!("fma"));
+        assert_eq!(
+            listed.contains(&"avx512f"),
+            std::arch::is_x86_feature_detected!("avx512f")
+        );
+        let level = if std::arch::is_x86_feature_detected!("avx512f") {
+            "avx512"
+        } else if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+            "avx2+fma"
+        } else {
+            "other"
+        };
+        if level != "other" {
+            assert_eq!(r["cpu"]["simd"], level);
+        }
+    }
+    if let (Some(total), Some(avail)) = (
+        r["cpu"]["memory_total_bytes"].as_u64(),
+        r["cpu"]["memory_available_bytes"].as_u64(),
+    ) {
+        assert!(avail <= total && total > 0);
+    }
+
+    // CUDA: a CPU build says why there is none; a CUDA build either lists devices or says why not.
+    let cuda = &r["cuda"];
+    assert_eq!(cuda["compiled"], cfg!(feature = "cuda"));
+    if !cfg!(feature = "cuda") {
+        assert!(cuda["unavailable"].as_str().unwrap().contains("no `cuda` feature"));
+        assert_eq!(cuda["devices"].as_array().unwrap().len(), 0);
+        assert!(cuda["driver_version"].is_null() && cuda["built_for"].is_null());
+    } else {
+        assert_eq!(cuda["built_for"], "13.0");
+        assert!(cuda["unavailable"].is_string() || !cuda["devices"].as_array().unwrap().is_empty());
+    }
+
+    // Weights: the Hugging Face cache under HOME, nothing on disk, online.
+    let w = &r["weights"];
+    let hf = home.path().join(".cache").join("huggingface").join("hub");
+    assert_eq!(w["hf_cache"], hf.display().to_string());
+    assert!(w["models_dir"].is_null());
+    assert_eq!(w["offline"], false);
+    let estimators = w["estimators"].as_array().unwrap();
+    assert!(estimators.iter().any(|e| e["name"] == "da3-metric"));
+    assert!(estimators.iter().all(|e| e["present"] == false && e["dir"].is_null()));
+}
+
+#[test]
+fn json_follows_threads_models_folder_and_offline() {
+    let home = tempfile::tempdir().unwrap();
+    let models = home.path().join("weights");
+    // Fill DIR/da3-metric/ with the files `pixl models list` says the model has.
+    let list = pixl(&["models", "list", "--json"], &[], home.path());
+    assert!(list.status.success());
+    let list: Value = serde_json::from_slice(&list.stdout).unwrap();
+    let spec = list
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|m| m["name"] == "da3-metric")
+        .unwrap();
+    for f in spec["files"].as_array().unwrap() {
+        let p = models.join("da3-metric").join(f.as_str().unwrap());
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(&p, b"{}").unwrap();
+    }
+    let models_text = models.display().to_string();
+    let r = doctor_json(
+        &[
+            ("RAYON_NUM_THREADS", "3"),
+            ("PIXL_MODELS_DIR", &models_text),
+            ("PIXL_OFFLINE", "1"),
+        ],
+        home.path(),
+    );
+    assert_eq!(r["cpu"]["threads"], 3);
+    let w = &r["weights"];
+    assert_eq!(w["models_dir"], models_text);
+    assert_eq!(w["offline"], true);
+    for e in w["estimators"].as_array().unwrap() {
+        if e["name"] == "da3-metric" {
+            assert_eq!(e["present"], true);
+            assert_eq!(e["dir"], models.join("da3-metric").display().to_string());
+        } else {
+            assert_eq!(e["present"], false, "{e}");
+        }
+    }
+}
+
+#[test]
+fn text_names_every_section() {
+    let home = tempfile::tempdir().unwrap();
+    let o = pixl(&["doctor"], &[], home.path());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8(o.stdout).unwrap();
+    for section in ["pixl ", "CPU ", "SIMD ", "CUDA ", "weights ", "da3-metric"] {
+        assert!(text.contains(section), "no {section:?} in:\n{text}");
+    }
+    // A bug report without CUDA still says why there is none.
+    if !cfg!(feature = "cuda") {
+        assert!(text.contains("no device"), "{text}");
+    }
+}
