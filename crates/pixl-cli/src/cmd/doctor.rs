@@ -1,6 +1,6 @@
 //! `pixl doctor`: what this build and machine offer, in a form to paste into a bug report —
-//! the build (version, profile, target, features), the CPU (model, SIMD level, threads the
-//! network uses, memory), CUDA (driver, devices, or why there is none) and where model weights
+//! the build (version, profile, target, features), the CPU (model, SIMD level, matrix-kernel
+//! threads, memory), CUDA (driver, devices, or why there is none) and where model weights
 //! are looked for. `--json` prints the same as one JSON document (field names are a stable
 //! interface; tests read them).
 use crate::device::{self, CudaReport};
@@ -153,7 +153,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         env!("CARGO_PKG_VERSION")
     ));
     ctx.say(format!(
-        "CPU      {} — {logical} logical cores, network threads {threads}{}",
+        "CPU      {} — {logical} logical cores, matrix-kernel threads {threads}{}",
         cpu_model().unwrap_or_else(|| "unknown model".into()),
         if std::env::var_os("RAYON_NUM_THREADS").is_some() {
             " (RAYON_NUM_THREADS)"
