@@ -51,7 +51,10 @@ fn json_matches_the_machine_and_the_environment() {
     assert_eq!(r["cpu"]["logical_cores"], cores);
     // Without RAYON_NUM_THREADS, candle's matrix kernels use one thread per physical core.
     let threads = r["cpu"]["threads"].as_u64().unwrap() as usize;
-    assert!((1..=cores).contains(&threads), "{threads} threads on {cores} logical cores");
+    assert!(
+        (1..=cores).contains(&threads),
+        "{threads} threads on {cores} logical cores"
+    );
     #[cfg(target_arch = "x86_64")]
     {
         let listed: Vec<&str> = r["cpu"]["simd_features"]

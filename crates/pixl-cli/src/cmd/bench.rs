@@ -59,18 +59,8 @@ pub struct ModelArgs {
     pub size: (usize, usize),
     #[arg(long, value_enum, default_value_t = DtypeArg::F32)]
     pub dtype: DtypeArg,
-    /// Untimed warm-up passes.
-    #[arg(long, default_value_t = pixl_eval::timing::DEFAULT_WARMUPS)]
-    pub warmups: usize,
-    /// Timed passes.
-    #[arg(long, default_value_t = pixl_eval::timing::DEFAULT_RUNS)]
-    pub runs: usize,
-    /// Device: cpu, or cuda[:N] (a CUDA build: scripts/cuda-setup.sh).
-    #[arg(long, default_value = "cpu")]
-    pub device: String,
-    /// Print JSON.
-    #[arg(long)]
-    pub json: bool,
+    #[command(flatten)]
+    pub run: RunArgs,
 }
 
 #[derive(clap::Args, Debug)]
@@ -90,13 +80,20 @@ pub struct TrainStepArgs {
     /// Recompute each block's activations in the backward pass (gradient checkpointing).
     #[arg(long)]
     pub checkpoint: bool,
-    /// Untimed warm-up steps.
+    #[command(flatten)]
+    pub run: RunArgs,
+}
+
+/// The timing protocol, device and output shared by `model` and `train-step`.
+#[derive(clap::Args, Debug)]
+pub struct RunArgs {
+    /// Untimed warm-up runs.
     #[arg(long, default_value_t = pixl_eval::timing::DEFAULT_WARMUPS)]
     pub warmups: usize,
-    /// Timed steps.
+    /// Timed runs.
     #[arg(long, default_value_t = pixl_eval::timing::DEFAULT_RUNS)]
     pub runs: usize,
-    /// Device: cpu, or cuda[:N].
+    /// Device: cpu, or cuda[:N] (a CUDA build: scripts/cuda-setup.sh).
     #[arg(long, default_value = "cpu")]
     pub device: String,
     /// Print JSON.
@@ -164,7 +161,7 @@ pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
 
 fn bench_model(args: ModelArgs, ctx: &Ctx) -> anyhow::Result<()> {
     let cfg = Config::from_name_or_file(&args.config)?;
-    let device = crate::device::parse_device(&args.device)?;
+    let device = crate::device::parse_device(&args.run.device)?;
     let dtype: DType = args.dtype.into();
     let model = pixl_model::build_inference(&cfg, 0, dtype, &device)?;
     let (w, h) = args.size;
@@ -173,16 +170,16 @@ fn bench_model(args: ModelArgs, ctx: &Ctx) -> anyhow::Result<()> {
         random(&mut rng, (1, 3, h, w), &device)?,
         random(&mut rng, (1, 9, h, w), &device)?,
     );
-    let timing = pixl_eval::timing::time_runs(args.warmups, args.runs, || -> anyhow::Result<()> {
+    let timing = pixl_eval::timing::time_runs(args.run.warmups, args.run.runs, || -> anyhow::Result<()> {
         let out = model.forward(&src, &ct)?;
         device.synchronize()?;
         drop(out);
         Ok(())
     })?;
-    if args.json {
+    if args.run.json {
         let out = serde_json::json!({
             "config": args.config, "params": cfg.param_count(), "width": w, "height": h,
-            "dtype": format!("{:?}", args.dtype).to_lowercase(), "device": args.device,
+            "dtype": format!("{:?}", args.dtype).to_lowercase(), "device": args.run.device,
             "threads": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             "timing": timing,
         });
@@ -193,7 +190,7 @@ fn bench_model(args: ModelArgs, ctx: &Ctx) -> anyhow::Result<()> {
             args.config,
             cfg.param_count() as f64 / 1e6,
             args.dtype,
-            args.device,
+            args.run.device,
             timing.describe()
         ));
     }
@@ -211,7 +208,7 @@ fn bench_train_step(args: TrainStepArgs, ctx: &Ctx) -> anyhow::Result<()> {
     use pixl_train::optim::{clip_global_norm, AdamW, AdamWConfig};
     use pixl_train::recompute;
     let cfg = Config::from_name_or_file(&args.config)?;
-    let device = crate::device::parse_device(&args.device)?;
+    let device = crate::device::parse_device(&args.run.device)?;
     let dtype: DType = args.dtype.into();
     let (varmap, model) = pixl_model::build_trainable(&cfg, 0, &device)?;
     let vars: std::collections::BTreeMap<String, candle_core::Var> = varmap
@@ -234,7 +231,7 @@ fn bench_train_step(args: TrainStepArgs, ctx: &Ctx) -> anyhow::Result<()> {
         recompute::plain
     };
     let mut last_loss = f32::NAN;
-    let timing = pixl_eval::timing::time_runs(args.warmups, args.runs, || -> anyhow::Result<()> {
+    let timing = pixl_eval::timing::time_runs(args.run.warmups, args.run.runs, || -> anyhow::Result<()> {
         let mut grads: Vec<Option<Tensor>> = vec![None; params.len()];
         let compute;
         let m = if dtype == DType::F32 {
@@ -251,10 +248,10 @@ fn bench_train_step(args: TrainStepArgs, ctx: &Ctx) -> anyhow::Result<()> {
         Ok(())
     })?;
     let dtype_name = format!("{:?}", args.dtype).to_lowercase();
-    if args.json {
+    if args.run.json {
         return ctx.print_json(&serde_json::json!({
             "config": args.config, "params": cfg.param_count(), "width": w, "height": h, "batch": b,
-            "dtype": dtype_name, "checkpoint": args.checkpoint, "device": args.device,
+            "dtype": dtype_name, "checkpoint": args.checkpoint, "device": args.run.device,
             "last_loss": last_loss, "timing": timing,
         }));
     }
@@ -263,7 +260,7 @@ fn bench_train_step(args: TrainStepArgs, ctx: &Ctx) -> anyhow::Result<()> {
         args.config,
         cfg.param_count() as f64 / 1e6,
         if args.checkpoint { ", checkpointed" } else { "" },
-        args.device,
+        args.run.device,
         timing.describe()
     ));
     Ok(())
