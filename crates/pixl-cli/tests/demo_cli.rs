@@ -24,11 +24,19 @@ fn demo_writes_a_complete_report() {
     // The plain-language introduction, the two summary tables (a row per preset, one bold best
     // value each) and the full-size overlay come before / after the image rows.
     assert!(html.contains("<p class=\"intro\">What you see:"), "intro");
-    assert_eq!(html.matches("<table class=\"summary\">").count(), 2);
+    assert_eq!(
+        html.matches("<table class=\"summary\">").count(),
+        3,
+        "PSNR, SSIM, light response"
+    );
     for p in presets {
         assert_eq!(html.matches(&format!("<tr><td>{p}</td>")).count(), 2, "{p} rows");
     }
-    assert_eq!(html.matches("<td><b>").count(), 2 * presets.len(), "one best per row");
+    assert_eq!(
+        html.matches("<td><b>").count(),
+        2 * presets.len() + 2,
+        "one best per row"
+    );
     assert!(html.contains("<div id=\"zoom\">") && html.contains("addEventListener('click'"));
     let panels = [
         "source",
@@ -67,6 +75,27 @@ fn demo_writes_a_complete_report() {
     }
     // The JSON summary carries finite metrics (or "inf" for an exact match), one entry per preset.
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    // Light response: the unchanged source responds to nothing; the relit images' score is the
+    // one of the written PNGs (8-bit quantisation moves it a little).
+    let lr = &v["light_response"];
+    assert_eq!(lr["identity"]["gain"], 0.0);
+    assert_eq!(lr["identity"]["correlation"], 0.0);
+    assert_eq!(lr["relit"]["pairs"], presets.len() * (presets.len() - 1) / 2);
+    let pngs = |f: &str| -> Vec<pixl_core::Image> {
+        presets
+            .iter()
+            .map(|p| pixl_core::io::read_image(&out.join(p).join(f)).unwrap())
+            .collect()
+    };
+    let (relit, traced) = (pngs("relit.png"), pngs("path_traced.png"));
+    let from_files =
+        pixl_eval::light_response(&relit.iter().collect::<Vec<_>>(), &traced.iter().collect::<Vec<_>>()).unwrap();
+    let gain = lr["relit"]["gain"].as_f64().unwrap();
+    assert!(
+        (from_files.gain - gain).abs() < 0.02,
+        "relit gain {gain} vs {} from the PNGs",
+        from_files.gain
+    );
     let rows = v["presets"].as_array().unwrap();
     assert_eq!(rows.len(), presets.len());
     for (r, p) in rows.iter().zip(presets) {

@@ -6,6 +6,8 @@
 //! - [`metrics`]: [`scale_correct`], [`psnr`], [`ssim`] (pure functions on [`pixl_core::Image`]).
 //! - [`lpips`]: LPIPS v0.1 ([`Lpips`]) over [`pixl_nn::backbones`].
 //! - [`baselines`]: the [`Method`] trait, [`Identity`], [`Compose`], [`ModelMethod`].
+//! - [`response`]: the light-response score ([`light_response`]): how much of a change of light
+//!   shows up in relit images, without ground truth.
 //! - [`run`]: pair lists and [`run_eval`].
 //! - [`report`]: `results.md` / `results.json` / `per_pair.csv`.
 pub mod baselines;
@@ -13,6 +15,7 @@ pub mod error;
 pub mod lpips;
 pub mod metrics;
 pub mod report;
+pub mod response;
 pub mod run;
 pub mod timing;
 
@@ -21,5 +24,6 @@ pub use error::{EvalError, Result};
 pub use lpips::{Lpips, LpipsError, LpipsNet};
 pub use metrics::{psnr, scale_correct, ssim, MetricError};
 pub use report::write_reports;
+pub use response::{light_response, LightResponse};
 pub use run::{default_pairs, read_pairs, run_eval, EvalOptions, EvalReport, MethodSummary, Pair, PairScore};
 pub use timing::{time_runs, Timing, DEFAULT_RUNS, DEFAULT_WARMUPS};

@@ -27,6 +27,10 @@ pub enum MetricError {
     TooSmall { width: usize, height: usize, win: usize },
     #[error("{which} contains non-finite values (NaN/Inf); metrics are undefined")]
     NonFinite { which: &'static str },
+    #[error("the light-response score needs one relit image per render and at least two lightings, got {relit} relit images and {renders} renders")]
+    Lightings { relit: usize, renders: usize },
+    #[error("the renders are the same under every lighting: there is no change of light to respond to")]
+    NoLightChange,
 }
 
 fn check_pair(pred: &Image, gt: &Image) -> Result<(), MetricError> {

@@ -138,6 +138,8 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     let mut json_rows = Vec::new();
     // Summary tables, a row per preset: (source, path-traced render, relit).
     let (mut psnr_rows, mut ssim_rows) = (Vec::new(), Vec::new());
+    // Per preset, for the light-response score: (relit, path-traced render, ground truth).
+    let mut responses: Vec<(Image, Image, Image)> = Vec::new();
     for &preset in PRESETS {
         let mut lit = scene.clone();
         apply_preset(&mut lit, preset, true)?;
@@ -198,9 +200,27 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
                 Panel::new("ground truth", &truth, None),
             ],
         });
+        responses.push((relit, path_traced, truth));
         pb.inc(1);
     }
     pb.finish_and_clear();
+    // How much of the change between the presets' path-traced renders each method shows.
+    let relits: Vec<&Image> = responses.iter().map(|r| &r.0).collect();
+    let traced: Vec<&Image> = responses.iter().map(|r| &r.1).collect();
+    let truths: Vec<&Image> = responses.iter().map(|r| &r.2).collect();
+    let sources: Vec<&Image> = vec![&source; responses.len()];
+    let response = [
+        pixl_eval::light_response(&sources, &traced)?,
+        pixl_eval::light_response(&truths, &traced)?,
+        pixl_eval::light_response(&relits, &traced)?,
+    ];
+    let response_rows = vec![
+        ("gain".to_string(), response.iter().map(|r| Some(r.gain)).collect()),
+        (
+            "correlation".to_string(),
+            response.iter().map(|r| Some(r.correlation)).collect(),
+        ),
+    ];
     let table = |caption: &str, rows, decimals| Table {
         caption: caption.into(),
         row_header: "preset".into(),
@@ -235,6 +255,18 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         tables: vec![
             table("PSNR (dB) against the ground truth", psnr_rows, 2),
             table("SSIM against the ground truth", ssim_rows, 3),
+            Table {
+                caption: "Light response over the five presets: how much of the change between the path-traced \
+                          renders shows up (1: all of it, 0: none; no ground truth needed)"
+                    .into(),
+                row_header: "score".into(),
+                columns: ["source unchanged (identity)", "ground truth", "relit (ours)"]
+                    .map(String::from)
+                    .to_vec(),
+                rows: response_rows,
+                decimals: 3,
+                lower_is_better: false,
+            },
         ],
         notes: vec![
             weights_note,
@@ -252,6 +284,10 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
              the path-traced render: rendering the scene C_T came from (the coarse reconstruction, or the true scene \
              with --exact-intrinsics), shown like the ground truth."
                 .into(),
+            "Light response (pixl-eval's README): over every pair of presets and every pixel, a = the change of \
+             log-luminance between a method's two images, b = the same change between the two path-traced renders; \
+             gain = Σab / Σb², correlation = Pearson's r of a and b."
+                .into(),
         ],
         rows,
     };
@@ -260,7 +296,15 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     if args.json {
         println!(
             "{}",
-            serde_json::to_string_pretty(&serde_json::json!({"report": html_path, "presets": json_rows}))?
+            serde_json::to_string_pretty(&serde_json::json!({
+                "report": html_path,
+                "presets": json_rows,
+                "light_response": {
+                    "identity": response[0],
+                    "ground_truth": response[1],
+                    "relit": response[2],
+                },
+            }))?
         );
     } else {
         ctx.say(format!("wrote {}", html_path.display()));
