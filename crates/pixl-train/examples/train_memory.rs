@@ -64,7 +64,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         };
         let f = if ckpt { checkpointed } else { plain };
         let mut grads = vec![None; list.len()];
-        let r = f(m, &src, &ct, &tgt, None, 0.0, 1.0, &list, &mut grads)?;
+        let r = f(
+            m,
+            &src,
+            &ct,
+            &tgt,
+            &pixl_train::loss::Objective::l1_only(),
+            1.0,
+            &list,
+            &mut grads,
+        )?;
         clip_global_norm(&mut grads, 1.0)?;
         opt.step(&grads, 1e-4)?;
         println!("step {step}: loss {:.6}, {:.2} s", r.loss, t0.elapsed().as_secs_f64());

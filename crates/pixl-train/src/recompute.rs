@@ -32,7 +32,7 @@
 //! plain loss and the gradients differ only by the order of the floating-point sums where a
 //! readout block output also feeds the next block.
 use crate::error::{Result, TrainError};
-use crate::loss::{loss, Perceptual};
+use crate::loss::{loss, Objective};
 use candle_core::{Tensor, Var};
 use pixl_model::model::Prepared;
 use pixl_model::PixlRelight;
@@ -104,7 +104,7 @@ fn report(total: &Tensor, l1: f32, perceptual: Option<f32>) -> Result<MicroRepor
     })
 }
 
-/// The plain path: `loss(model.forward_unclipped(src, ct), tgt) / divisor`, one backward, the
+/// The plain path: `loss(model.forward_unclipped(src, ct), tgt, objective) / divisor`, one backward, the
 /// gradients of `vars` added into `grads` (same length as `vars`).
 #[allow(clippy::too_many_arguments)]
 pub fn plain(
@@ -112,14 +112,13 @@ pub fn plain(
     src: &Tensor,
     ct: &Tensor,
     tgt: &Tensor,
-    perceptual: Option<&Perceptual>,
-    weight: f64,
+    objective: &Objective,
     divisor: f64,
     vars: &[Var],
     grads: &mut [Option<Tensor>],
 ) -> Result<MicroReport> {
     let pred = model.forward_unclipped(src, ct)?;
-    let terms = loss(&pred, tgt, perceptual, weight)?;
+    let terms = loss(&pred, tgt, objective)?;
     let total = (&terms.total / divisor)?;
     let store = total.backward()?;
     accumulate(&store, vars, grads)?;
@@ -134,8 +133,7 @@ pub fn checkpointed(
     src: &Tensor,
     ct: &Tensor,
     tgt: &Tensor,
-    perceptual: Option<&Perceptual>,
-    weight: f64,
+    objective: &Objective,
     divisor: f64,
     vars: &[Var],
     grads: &mut [Option<Tensor>],
@@ -167,7 +165,7 @@ pub fn checkpointed(
             .collect::<Result<Vec<Var>>>()?;
         let leaf_tensors: Vec<Tensor> = leaves.iter().map(|v| v.as_tensor().clone()).collect();
         let pred = model.tail_unclipped(&leaf_tensors, src, &p)?;
-        let terms = loss(&pred, tgt, perceptual, weight)?;
+        let terms = loss(&pred, tgt, objective)?;
         let total = (&terms.total / divisor)?;
         let store = total.backward()?;
         accumulate(&store, vars, grads)?;

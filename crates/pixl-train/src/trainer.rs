@@ -13,7 +13,7 @@
 //! ([`crate::recompute`]); same loss, same gradients up to summation order.
 use crate::config::TrainConfig;
 use crate::error::{Result, TrainError};
-use crate::loss::Perceptual;
+use crate::loss::{Objective, Perceptual};
 use crate::optim::{clip_global_norm, AdamW, LrSchedule};
 use crate::precision::{compute_model, Precision};
 use crate::recompute;
@@ -277,8 +277,10 @@ impl Trainer {
                 &src,
                 &ct,
                 &tgt,
-                self.perceptual.as_ref(),
-                self.cfg.loss.perceptual_weight,
+                &Objective {
+                    perceptual: self.perceptual.as_ref(),
+                    weight: self.cfg.loss.perceptual_weight,
+                },
                 accum as f64,
                 &vars,
                 &mut grads,

@@ -62,8 +62,7 @@ type StepFn = fn(
     &Tensor,
     &Tensor,
     &Tensor,
-    Option<&pixl_train::loss::Perceptual>,
-    f64,
+    &pixl_train::loss::Objective,
     f64,
     &[Var],
     &mut [Option<Tensor>],
@@ -74,7 +73,19 @@ type StepFn = fn(
 fn grads_of(s: &Setup, model: &PixlRelight, f: StepFn) -> (Vec<MicroReport>, Vec<Tensor>) {
     let mut grads = vec![None; s.vars.len()];
     let reports = (0..2)
-        .map(|_| f(model, &s.src, &s.ct, &s.tgt, None, 0.0, 2.0, &s.vars, &mut grads).unwrap())
+        .map(|_| {
+            f(
+                model,
+                &s.src,
+                &s.ct,
+                &s.tgt,
+                &pixl_train::loss::Objective::l1_only(),
+                2.0,
+                &s.vars,
+                &mut grads,
+            )
+            .unwrap()
+        })
         .collect();
     let grads = grads
         .into_iter()

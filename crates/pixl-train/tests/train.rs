@@ -251,7 +251,7 @@ fn tiny_overfits_a_single_pair() {
     let mut best = f64::NEG_INFINITY;
     for step in 0..400u64 {
         let pred = model.forward_unclipped(&src, &ct).unwrap();
-        let terms = pixl_train::loss::loss(&pred, &tgt, None, 0.0).unwrap();
+        let terms = pixl_train::loss::loss(&pred, &tgt, &pixl_train::loss::Objective::l1_only()).unwrap();
         let store = terms.total.backward().unwrap();
         let mut grads: Vec<Option<Tensor>> = opt
             .params

@@ -240,7 +240,8 @@ fn bench_train_step(args: TrainStepArgs, ctx: &Ctx) -> anyhow::Result<()> {
             compute = pixl_train::precision::compute_model(&cfg, &opt.params, dtype, &device)?;
             &compute
         };
-        let r = step_fn(m, &src, &ct, &tgt, None, 0.0, 1.0, &params, &mut grads)?;
+        let objective = pixl_train::loss::Objective::l1_only();
+        let r = step_fn(m, &src, &ct, &tgt, &objective, 1.0, &params, &mut grads)?;
         clip_global_norm(&mut grads, 1.0)?;
         opt.step(&grads, 1e-4)?;
         device.synchronize()?;
