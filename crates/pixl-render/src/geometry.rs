@@ -250,7 +250,7 @@ impl Geometry {
                 } else {
                     [[0.0, 0.0]; 3]
                 };
-                tris.push(Tri { p0: a, e1, e2 });
+                tris.push(Tri { p0: a, p1: b, p2: c });
                 attrs.push(TriAttr {
                     n,
                     uv,
@@ -267,7 +267,7 @@ impl Geometry {
         let mut lo = V3::splat(f32::INFINITY);
         let mut hi = V3::splat(f32::NEG_INFINITY);
         for t in &tris {
-            for p in [t.p0, t.p0 + t.e1, t.p0 + t.e2] {
+            for p in [t.p0, t.p1, t.p2] {
                 lo = lo.min(p);
                 hi = hi.max(p);
             }
@@ -419,7 +419,7 @@ mod tests {
                     // Leaving a random triangle.
                     let prim = rng.below(g.tris.len()) as u32;
                     let t = &g.tris[prim as usize];
-                    let p = t.p0 + t.e1 * 0.25 + t.e2 * 0.25;
+                    let p = t.point(0.25, 0.25);
                     Ray::leaving(prim, p, (target - p).normalize())
                 } else {
                     let o = V3::new(rng.uniform(-3.0, 3.0), rng.uniform(-0.5, 3.0), rng.uniform(-3.0, 3.0));

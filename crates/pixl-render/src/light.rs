@@ -506,7 +506,7 @@ impl Lights {
             LightKind::Tri { prim, radiance } => {
                 let tri = &geom.tris[*prim as usize];
                 let (b1, b2) = uniform_triangle(u1, u2);
-                let q = tri.p0 + tri.e1 * b1 + tri.e2 * b2;
+                let q = tri.point(b1, b2);
                 let a = &geom.attrs[*prim as usize];
                 let (wi, dist) = towards(q);
                 let cos_l = wi.dot(a.ng).abs();

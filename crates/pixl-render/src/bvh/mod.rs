@@ -2,12 +2,37 @@
 //! collapsed into a 4-wide tree, with triangles stored in leaf order as 4-wide packets.
 //!
 //! Contract: [`Bvh::intersect`] returns the closest hit in `(tmin, tmax)` and
-//! [`Bvh::occluded`] whether any hit lies there, both as the Möller–Trumbore test
-//! [`intersect_tri`] (two-sided) over every triangle but the ray's [`Ray::skip`] would — the
-//! packet test performs the same floating-point operations in the same order per lane, so hit
-//! distances and barycentrics are bit-identical to [`intersect_tri`]'s; among triangles hit at
-//! exactly the same distance the one reported may differ. [`Hit::prim`] indexes the input slice given to [`Bvh::build`]
-//! after reordering with the permutation it returns.
+//! [`Bvh::occluded`] whether any hit lies there, both as the watertight test [`intersect_tri`]
+//! (two-sided) over every triangle but the ray's [`Ray::skip`] would — the four-triangle test
+//! and every packet kernel perform the same floating-point operations in the same order per
+//! lane, so hit distances and barycentrics are bit-identical to [`intersect_tri`]'s; among
+//! triangles hit at exactly the same distance the one reported may differ. [`Hit::prim`]
+//! indexes the input slice given to [`Bvh::build`] after reordering with the permutation it
+//! returns.
+//!
+//! The triangle test is watertight (Woop, Benthin and Wald, "Watertight Ray/Triangle
+//! Intersection", JCGT 2013): a ray never passes between triangles that share an edge or a
+//! vertex — through a shared edge or vertex it hits at least one of them (possibly several, at
+//! the same distance up to rounding). Per ray, once per query ([`RayTri`], or a [`RayPack`]'s
+//! shear rows): the axis `kz` of the direction's largest component, `kx`, `ky` the next two
+//! (cyclically), and the shear `(d[kx] / d[kz], d[ky] / d[kz], 1 / d[kz])`. Per triangle:
+//! - the vertices relative to the origin, axes permuted to `(kx, ky, kz)`, x and y sheared so
+//!   that the ray becomes the z axis ([`sheared`]);
+//! - the 2-D edge functions `U, V, W` (for edges BC, CA, AB; [`edge_fns`]) — a shared edge gives
+//!   its two triangles the same value with opposite signs, bit for bit;
+//! - a hit needs `U, V, W` all ≥ 0 or all ≤ 0 (two-sided), `det = U + V + W ≠ 0` and
+//!   `t = (U·A_z + V·B_z + W·C_z) · S_z / det` in `(tmin, tmax)`; barycentrics `b1 = V / det`
+//!   and `b2 = W / det` weight vertices [`Tri::p1`] and [`Tri::p2`], as before;
+//! - a hit with an edge function exactly 0 (the ray through an edge or a vertex, or a product
+//!   rounded so) is decided again with the edge functions in f64 from the same f32 inputs
+//!   ([`refine`]): the products are then exact, so the signs are exact, and they agree with
+//!   every non-zero f32 result (rounding is monotonic), which keeps the test watertight on the
+//!   edge itself. This stage is rare and out of line.
+//!
+//! Triangles are stored by their vertices ([`Tri`], [`Tri4`]), not as a vertex and two edges:
+//! a vertex rebuilt as `p0 + e1` in f32 differs from the one its neighbour stores, which opens
+//! cracks whatever the test. Rays that leave a surface skip the triangle they start on
+//! ([`Ray::skip`]) and start exactly there; `tmin` is only the lower end of the window.
 //!
 //! Layout, chosen by measurement on the ~500 k-triangle depth-mesh benchmark (see
 //! BENCHMARKS.md): the tree is shallow and wide (a render is bound by traversal instructions).
@@ -22,8 +47,8 @@
 //!   slab tests are plain lane loops the compiler turns into SIMD on stable Rust (SSE2).
 //!   (8-wide nodes, `NW = 8`, measured: 43 % fewer nodes but no faster — shadow
 //!   packets 6.4 → 4.3 Mrays/s, single rays unchanged.)
-//! - Leaves: [`Tri4`] packets (vertex and two edges per lane, lanes padded with zero-area
-//!   triangles that never hit), tested 4 at a time the same way.
+//! - Leaves: [`Tri4`] packets (three vertices per lane, lanes padded with NaN vertices, which
+//!   never hit), tested 4 at a time the same way ([`simd4`]: SSE on x86-64).
 //! - Traversal: children hit by the ray are visited nearest first (sorted by entry distance)
 //!   for closest-hit queries, with entries farther than the current hit skipped when popped;
 //!   any-hit queries stop at the first hit and do not sort.
@@ -51,13 +76,36 @@ mod packet_avx2;
 mod packet_avx512;
 #[cfg(target_arch = "x86_64")]
 mod packet_simd;
+mod simd4;
 
-/// A triangle as stored for intersection: one vertex and two edges.
+/// A triangle as stored for intersection: its three vertices (a hit's barycentrics `b1`, `b2`
+/// weight `p1` and `p2`). Triangles sharing a vertex must hold it bit for bit (as they do when
+/// made from one vertex array): the watertight test relies on it.
 #[derive(Clone, Copy, Debug)]
 pub struct Tri {
     pub p0: V3,
-    pub e1: V3,
-    pub e2: V3,
+    pub p1: V3,
+    pub p2: V3,
+}
+
+impl Tri {
+    /// The edge `p1 − p0`.
+    #[inline]
+    pub fn e1(&self) -> V3 {
+        self.p1 - self.p0
+    }
+
+    /// The edge `p2 − p0`.
+    #[inline]
+    pub fn e2(&self) -> V3 {
+        self.p2 - self.p0
+    }
+
+    /// The point with barycentrics `b1`, `b2`: `p0 + e1·b1 + e2·b2`, as [`Hit::p`] is computed.
+    #[inline]
+    pub fn point(&self, b1: f32, b2: f32) -> V3 {
+        self.p0 + self.e1() * b1 + self.e2() * b2
+    }
 }
 
 /// A ray with precomputed reciprocal direction, and the primitive it leaves (never hit).
@@ -73,6 +121,47 @@ pub struct Ray {
 
 /// [`Ray::skip`] of a ray that starts on no primitive.
 pub const NO_PRIM: u32 = u32::MAX;
+
+/// A ray's constants for the watertight triangle test, made once per query (or per lane of a
+/// [`RayPack`]) from its direction `d` and reciprocal `inv_d`: `kz`, the axis of the
+/// direction's largest magnitude (the others taken as `kx = kz + 1`, `ky = kz + 2`, mod 3), and
+/// the shear `s = (d[kx] / d[kz], d[ky] / d[kz], 1 / d[kz])` (as `d[kx] · inv_d[kz]`, …) that
+/// maps the ray onto the `kz` axis.
+#[derive(Clone, Copy, Debug)]
+struct Shear {
+    kz: usize,
+    s: [f32; 3],
+}
+
+impl Shear {
+    #[inline(always)]
+    fn new(d: V3, inv_d: V3) -> Shear {
+        let (x, y, z) = (d.x.abs(), d.y.abs(), d.z.abs());
+        let kz = if x > y && x > z {
+            0
+        } else if y > z {
+            1
+        } else {
+            2
+        };
+        let [kx, ky, _] = axes(kz);
+        let sz = inv_d[kz];
+        Shear {
+            kz,
+            s: [d[kx] * sz, d[ky] * sz, sz],
+        }
+    }
+}
+
+/// The permuted axes `[kx, ky, kz]` of a ray whose largest direction axis is `kz`.
+#[inline(always)]
+fn axes(kz: usize) -> [usize; 3] {
+    match kz {
+        0 => [1, 2, 0],
+        1 => [2, 0, 1],
+        _ => [0, 1, 2],
+    }
+}
 
 impl Ray {
     pub fn new(o: V3, d: V3) -> Self {
@@ -104,15 +193,37 @@ pub struct Hit {
     pub p: V3,
 }
 
-/// Four triangles, structure of arrays: `p0[axis][lane]`, `e1`, `e2` likewise, and the index
-/// of each lane's triangle (`u32::MAX` for padding lanes, which have zero edges).
+/// Four triangles, structure of arrays: vertices `p0[axis][lane]`, `p1`, `p2` likewise, and
+/// the index of each lane's triangle (`u32::MAX` for padding lanes, whose vertices are NaN:
+/// never hit, and never the watertight test's f64 fallback).
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(32))]
 struct Tri4 {
     p0: [[f32; 4]; 3],
-    e1: [[f32; 4]; 3],
-    e2: [[f32; 4]; 3],
+    p1: [[f32; 4]; 3],
+    p2: [[f32; 4]; 3],
     prim: [u32; 4],
+}
+
+impl Tri4 {
+    /// Lane `l`'s triangle.
+    #[inline(always)]
+    fn tri(&self, l: usize) -> Tri {
+        let lane = |a: &[[f32; 4]; 3]| V3::new(a[0][l], a[1][l], a[2][l]);
+        Tri {
+            p0: lane(&self.p0),
+            p1: lane(&self.p1),
+            p2: lane(&self.p2),
+        }
+    }
+
+    /// Lane `l`'s hit point with barycentrics `b1`, `b2`, as [`Tri::point`].
+    #[inline(always)]
+    fn point(&self, l: usize, b1: f32, b2: f32) -> V3 {
+        let lane = |a: &[[f32; 4]; 3]| V3::new(a[0][l], a[1][l], a[2][l]);
+        let p0 = lane(&self.p0);
+        p0 + (lane(&self.p1) - p0) * b1 + (lane(&self.p2) - p0) * b2
+    }
 }
 
 /// Children per interior node.
@@ -482,8 +593,8 @@ impl Bvh {
             .map(|(i, t)| {
                 let mut bb = Aabb::EMPTY;
                 bb.grow_p(t.p0);
-                bb.grow_p(t.p0 + t.e1);
-                bb.grow_p(t.p0 + t.e2);
+                bb.grow_p(t.p1);
+                bb.grow_p(t.p2);
                 Prim {
                     bb,
                     c: V3::new(
@@ -588,17 +699,17 @@ impl Bvh {
                 let p = self.packets.len();
                 for chunk in tris[first as usize..(first + count) as usize].chunks(LANES) {
                     let mut pk = Tri4 {
-                        p0: [[0.0; 4]; 3],
-                        e1: [[0.0; 4]; 3],
-                        e2: [[0.0; 4]; 3],
+                        p0: [[f32::NAN; 4]; 3],
+                        p1: [[f32::NAN; 4]; 3],
+                        p2: [[f32::NAN; 4]; 3],
                         prim: [u32::MAX; 4],
                     };
                     let base = first as usize + (self.packets.len() - p) * LANES;
                     for (l, t) in chunk.iter().enumerate() {
                         for a in 0..3 {
                             pk.p0[a][l] = t.p0[a];
-                            pk.e1[a][l] = t.e1[a];
-                            pk.e2[a][l] = t.e2[a];
+                            pk.p1[a][l] = t.p1[a];
+                            pk.p2[a][l] = t.p2[a];
                         }
                         pk.prim[l] = (base + l) as u32;
                     }
@@ -717,6 +828,7 @@ impl Bvh {
         };
         let o = [ray.o.x, ray.o.y, ray.o.z];
         let inv = [ray.inv_d.x, ray.inv_d.y, ray.inv_d.z];
+        let rt = RayTri::new(ray);
         // Row of each axis's near and far planes in `Node4::b`.
         let neg: [usize; 3] = std::array::from_fn(|a| (inv[a] < 0.0) as usize);
         let near: [usize; 3] = std::array::from_fn(|a| a + 3 * neg[a]);
@@ -813,7 +925,7 @@ impl Bvh {
                 }
             } else if cur != EMPTY {
                 for pk in self.leaf_packets(cur) {
-                    if let Some(h) = intersect_tri4(pk, ray, tmin, tmax) {
+                    if let Some(h) = intersect_tri4(pk, &rt, tmin, tmax) {
                         tmax = h.t;
                         *best = Some(h);
                         if ANY {
@@ -988,6 +1100,10 @@ pub struct RayPack {
     o: [[f32; PACKET]; 3],
     d: [[f32; PACKET]; 3],
     inv: [[f32; PACKET]; 3],
+    /// The rays' shears, rows `sx`, `sy`, `sz` ([`Shear::s`]), and per axis the lanes whose
+    /// [`Shear::kz`] it is.
+    sh: [[f32; PACKET]; 3],
+    kz: [u32; 3],
     /// Per lane, the primitive the ray leaves ([`Ray::skip`]).
     skip: [u32; PACKET],
     /// Current far limit per lane (the closest hit so far).
@@ -1007,13 +1123,63 @@ impl RayPack {
     #[inline(always)]
     fn record(&mut self, mut m: u32, pk: &Tri4, l: usize) {
         self.found |= m;
-        let lane = |a: &[[f32; 4]; 3]| V3::new(a[0][l], a[1][l], a[2][l]);
         while m != 0 {
             let r = m.trailing_zeros() as usize;
             m &= m - 1;
             self.prim[r] = pk.prim[l];
-            self.hp[r] = lane(&pk.p0) + lane(&pk.e1) * self.b1[r] + lane(&pk.e2) * self.b2[r];
+            self.hp[r] = pk.point(l, self.b1[r], self.b2[r]);
         }
+    }
+
+    /// Lane `r`'s ray as the watertight test reads it.
+    #[inline(always)]
+    fn ray_tri(&self, r: usize) -> RayTri {
+        let k = axes((0..3).find(|&a| self.kz[a] >> r & 1 != 0).unwrap_or(2));
+        RayTri {
+            k,
+            o: k.map(|a| self.o[a][r]),
+            s: [self.sh[0][r], self.sh[1][r], self.sh[2][r]],
+            skip: self.skip[r],
+        }
+    }
+
+    /// Fills the shear rows and `kz` lane sets from the rays' directions, every lane as
+    /// [`Shear::new`] does (branch-free, so that the compiler vectorises it): once per query,
+    /// at the start of each packet kernel.
+    #[inline(always)]
+    fn prepare_shear(&mut self) {
+        let mut kz = [0u32; 3];
+        for r in 0..PACKET {
+            let d = [self.d[0][r], self.d[1][r], self.d[2][r]];
+            let inv = [self.inv[0][r], self.inv[1][r], self.inv[2][r]];
+            let (x, y, z) = (d[0].abs(), d[1].abs(), d[2].abs());
+            let is_x = (x > y) & (x > z);
+            let is_y = !is_x & (y > z);
+            // Per axis `kz`: (d[kx], d[ky], inv_d[kz]) as `axes` orders them.
+            let pick = |if_x: f32, if_y: f32, if_z: f32| {
+                if is_x {
+                    if_x
+                } else if is_y {
+                    if_y
+                } else {
+                    if_z
+                }
+            };
+            let sz = pick(inv[0], inv[1], inv[2]);
+            self.sh[0][r] = pick(d[1], d[2], d[0]) * sz;
+            self.sh[1][r] = pick(d[2], d[0], d[1]) * sz;
+            self.sh[2][r] = sz;
+            kz[0] |= (is_x as u32) << r;
+            kz[1] |= (is_y as u32) << r;
+        }
+        kz[2] = PACK_LANES & !(kz[0] | kz[1]);
+        self.kz = kz;
+    }
+
+    /// The one [`Shear::kz`] of every lane in `act`, if they share it.
+    #[inline(always)]
+    fn uniform_kz(&self, act: u32) -> Option<usize> {
+        (0..3).find(|&a| act & !self.kz[a] == 0)
     }
 
     /// A pack with every lane zeroed and no hit.
@@ -1022,6 +1188,8 @@ impl RayPack {
             o: [[0.0; PACKET]; 3],
             d: [[0.0; PACKET]; 3],
             inv: [[0.0; PACKET]; 3],
+            sh: [[0.0; PACKET]; 3],
+            kz: [0, 0, PACK_LANES],
             skip: [NO_PRIM; PACKET],
             tmax: [f32::NEG_INFINITY; PACKET],
             b1: [0.0; PACKET],
@@ -1154,7 +1322,8 @@ impl Bvh {
     /// [`Bvh::traverse_packet_body`] compiled for `isa`.
     #[inline]
     fn traverse_packet<const ANY: bool>(&self, isa: Isa, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
-        // The requested kernel, or the best this CPU has if it lacks that one.
+        // The requested kernel, or the best this CPU has if it lacks that one (each starts by
+        // `RayPack::prepare_shear`, compiled for its instruction set).
         #[cfg(target_arch = "x86_64")]
         match isa.min(Isa::detect()) {
             // SAFETY (both): `Isa::detect` returned at least this `Isa` only after
@@ -1164,6 +1333,7 @@ impl Bvh {
             Isa::Base => {}
         }
         let _ = isa;
+        p.prepare_shear();
         self.traverse_packet_body::<ANY>(start, act, p, tmin)
     }
 
@@ -1297,44 +1467,37 @@ impl Bvh {
 /// recorded (distance, barycentrics) and are returned as a mask.
 #[inline(always)]
 fn intersect_tri_lanes(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
-    let (e1x, e1y, e1z) = (pk.e1[0][l], pk.e1[1][l], pk.e1[2][l]);
-    let (e2x, e2y, e2z) = (pk.e2[0][l], pk.e2[1][l], pk.e2[2][l]);
-    let (p0x, p0y, p0z) = (pk.p0[0][l], pk.p0[1][l], pk.p0[2][l]);
-    let mut ok = [false; PACKET];
-    for r in 0..PACKET {
-        let (dx, dy, dz) = (p.d[0][r], p.d[1][r], p.d[2][r]);
-        let px = dy * e2z - dz * e2y;
-        let py = dz * e2x - dx * e2z;
-        let pz = dx * e2y - dy * e2x;
-        let det = e1x * px + e1y * py + e1z * pz;
-        let inv = 1.0 / det;
-        let sx = p.o[0][r] - p0x;
-        let sy = p.o[1][r] - p0y;
-        let sz = p.o[2][r] - p0z;
-        let u = (sx * px + sy * py + sz * pz) * inv;
-        let qx = sy * e1z - sz * e1y;
-        let qy = sz * e1x - sx * e1z;
-        let qz = sx * e1y - sy * e1x;
-        let v = (dx * qx + dy * qy + dz * qz) * inv;
-        let tt = (e2x * qx + e2y * qy + e2z * qz) * inv;
-        let h = (det.abs() >= 1e-20)
-            & (0.0..=1.0).contains(&u)
-            & (v >= 0.0)
-            & (u + v <= 1.0)
-            & (tt > tmin)
-            & (tt < p.tmax[r])
-            & (pk.prim[l] != p.skip[r])
-            & (act >> r & 1 != 0);
-        ok[r] = h;
-        p.tmax[r] = if h { tt } else { p.tmax[r] };
-        p.b1[r] = if h { u } else { p.b1[r] };
-        p.b2[r] = if h { v } else { p.b2[r] };
-    }
     let mut m = 0u32;
     for r in 0..PACKET {
-        m |= (ok[r] as u32) << r;
+        if act >> r & 1 == 0 || pk.prim[l] == p.skip[r] {
+            continue;
+        }
+        let (tri, rt) = (pk.tri(l), p.ray_tri(r));
+        if let Some((t, b1, b2)) = tri_test(&tri, &rt, tmin, p.tmax[r]) {
+            p.tmax[r] = t;
+            p.b1[r] = b1;
+            p.b2[r] = b2;
+            m |= 1 << r;
+        }
     }
     m
+}
+
+/// Lane `l` of `pk` against the rays of `p` in `act` with the packet kernel of `isa` (the
+/// portable one for [`Isa::Base`]): the kernels on their own, for tests.
+#[cfg(test)]
+fn tri_lanes_isa(isa: Isa, pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
+    p.prepare_shear();
+    #[cfg(target_arch = "x86_64")]
+    match isa.min(Isa::detect()) {
+        // SAFETY (both): `Isa::detect` returned at least this `Isa` only after
+        // `is_x86_feature_detected!` confirmed every feature the kernel is compiled for.
+        Isa::Avx512 => return unsafe { packet_avx512::tri_alone(pk, l, p, tmin, act) },
+        Isa::Avx2 => return unsafe { packet_avx2::tri_alone(pk, l, p, tmin, act) },
+        Isa::Base => {}
+    }
+    let _ = isa;
+    intersect_tri_lanes(pk, l, p, tmin, act)
 }
 
 /// Instruction set a traversal is compiled for (ordered: each one includes the previous).
@@ -1405,92 +1568,234 @@ impl Isa {
     }
 }
 
-/// [`intersect_tri`] on four triangles at once: the closest hit in `(tmin, tmax)` (the lowest
-/// lane among equal distances).
-#[inline(always)]
-fn intersect_tri4(pk: &Tri4, ray: &Ray, tmin: f32, tmax: f32) -> Option<Hit> {
-    let (d, o) = (ray.d, ray.o);
-    let mut t = [0f32; 4];
-    let mut b1 = [0f32; 4];
-    let mut b2 = [0f32; 4];
-    let mut ok = [false; 4];
-    for i in 0..4 {
-        let (e1x, e1y, e1z) = (pk.e1[0][i], pk.e1[1][i], pk.e1[2][i]);
-        let (e2x, e2y, e2z) = (pk.e2[0][i], pk.e2[1][i], pk.e2[2][i]);
-        // Same operations, same order as `intersect_tri`.
-        let px = d.y * e2z - d.z * e2y;
-        let py = d.z * e2x - d.x * e2z;
-        let pz = d.x * e2y - d.y * e2x;
-        let det = e1x * px + e1y * py + e1z * pz;
-        let inv = 1.0 / det;
-        let sx = o.x - pk.p0[0][i];
-        let sy = o.y - pk.p0[1][i];
-        let sz = o.z - pk.p0[2][i];
-        let u = (sx * px + sy * py + sz * pz) * inv;
-        let qx = sy * e1z - sz * e1y;
-        let qy = sz * e1x - sx * e1z;
-        let qz = sx * e1y - sy * e1x;
-        let v = (d.x * qx + d.y * qy + d.z * qz) * inv;
-        let tt = (e2x * qx + e2y * qy + e2z * qz) * inv;
-        ok[i] = (det.abs() >= 1e-20)
-            & (0.0..=1.0).contains(&u)
-            & (v >= 0.0)
-            & (u + v <= 1.0)
-            & (tt > tmin)
-            & (tt < tmax)
-            & (pk.prim[i] != ray.skip);
-        t[i] = tt;
-        b1[i] = u;
-        b2[i] = v;
+/// A ray as the watertight test reads it: its axes `[kx, ky, kz]` ([`Shear`]), its origin's
+/// coordinates in that order, its shear and the primitive it skips. Made once per traversal.
+#[derive(Clone, Copy)]
+struct RayTri {
+    k: [usize; 3],
+    o: [f32; 3],
+    s: [f32; 3],
+    skip: u32,
+}
+
+impl RayTri {
+    #[inline(always)]
+    fn new(ray: &Ray) -> RayTri {
+        let sh = Shear::new(ray.d, ray.inv_d);
+        let k = axes(sh.kz);
+        RayTri {
+            k,
+            o: k.map(|a| ray.o[a]),
+            s: sh.s,
+            skip: ray.skip,
+        }
     }
-    if !(ok[0] | ok[1] | ok[2] | ok[3]) {
+}
+
+/// The vertices of `tri` relative to the origin of `r`, axes permuted, x and y sheared (so that
+/// the ray is the z axis of the frame in which the triangle is tested in 2-D): `q = [ax, ay,
+/// bx, by, cx, cy]` and `z = [az, bz, cz]`. Every test computes these as written here.
+#[inline(always)]
+fn sheared(tri: &Tri, r: &RayTri) -> ([f32; 6], [f32; 3]) {
+    let [kx, ky, kz] = r.k;
+    let [sx, sy, _] = r.s;
+    let rel = |p: V3| {
+        let z = p[kz] - r.o[2];
+        ((p[kx] - r.o[0]) - sx * z, (p[ky] - r.o[1]) - sy * z, z)
+    };
+    let (a, b, c) = (rel(tri.p0), rel(tri.p1), rel(tri.p2));
+    ([a.0, a.1, b.0, b.1, c.0, c.1], [a.2, b.2, c.2])
+}
+
+/// The watertight test's edge functions `[U, V, W]` of the triangle with sheared vertices `q`
+/// ([`sheared`]): twice the signed areas that the ray's point spans with edges BC, CA and AB,
+/// so the weights of vertices A, B and C. A shared edge gives its two triangles the same value
+/// with opposite signs, bit for bit.
+#[inline(always)]
+fn edge_fns(q: [f32; 6]) -> [f32; 3] {
+    let [ax, ay, bx, by, cx, cy] = q;
+    [cx * by - cy * bx, ax * cy - ay * cx, bx * ay - by * ax]
+}
+
+/// [`edge_fns`] in f64, rounded to f32: the products of f32 values are exact in f64, so each
+/// sign is the exact one, which agrees with every non-zero [`edge_fns`] result (rounding is
+/// monotonic).
+#[inline(always)]
+fn edge_fns_f64(q: [f32; 6]) -> [f32; 3] {
+    let [ax, ay, bx, by, cx, cy] = q.map(f64::from);
+    [
+        (cx * by - cy * bx) as f32,
+        (ax * cy - ay * cx) as f32,
+        (bx * ay - by * ax) as f32,
+    ]
+}
+
+/// `a < b ? a : b` and `a > b ? a : b`, as `minps` and `maxps` compute them (NaN: `b`).
+#[inline(always)]
+fn min_(a: f32, b: f32) -> f32 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+#[inline(always)]
+fn max_(a: f32, b: f32) -> f32 {
+    if a > b {
+        a
+    } else {
+        b
+    }
+}
+
+/// Whether edge functions `e` allow a hit: all ≥ 0 or all ≤ 0 (either side of the triangle
+/// faces the ray), tested on their smallest and largest.
+#[inline(always)]
+fn same_sign(e: [f32; 3]) -> bool {
+    let [u, v, w] = e;
+    (min_(min_(u, v), w) >= 0.0) | (max_(max_(u, v), w) <= 0.0)
+}
+
+/// From edge functions `e` and the vertices' `z`, with the ray's `sz`: the sum `det` of the
+/// edge functions, the distance and the barycentrics, `(det, t, b1, b2)`.
+#[inline(always)]
+fn solve(e: [f32; 3], z: [f32; 3], sz: f32) -> (f32, f32, f32, f32) {
+    let [u, v, w] = e;
+    let det = u + v + w;
+    let inv = 1.0 / det;
+    let t = (u * z[0] + v * z[1] + w * z[2]) * sz * inv;
+    (det, t, v * inv, w * inv)
+}
+
+/// The watertight ray–triangle test (see the module header): `(t, b1, b2)` for a hit in
+/// `(tmin, tmax)`, either side of the triangle.
+#[inline]
+pub fn intersect_tri(tri: &Tri, ray: &Ray, tmin: f32, tmax: f32) -> Option<(f32, f32, f32)> {
+    tri_test(tri, &RayTri::new(ray), tmin, tmax)
+}
+
+/// [`intersect_tri`] for a prepared ray (whose `skip` it ignores). Every other test performs
+/// these operations per lane, in this order: the sheared vertices, the edge functions in f32,
+/// their signs, the distance; then, for a hit with an edge function exactly 0, [`refine`].
+#[inline(always)]
+fn tri_test(tri: &Tri, r: &RayTri, tmin: f32, tmax: f32) -> Option<(f32, f32, f32)> {
+    let (q, z) = sheared(tri, r);
+    let e = edge_fns(q);
+    if !same_sign(e) {
         return None;
+    }
+    let (det, t, b1, b2) = solve(e, z, r.s[2]);
+    if !(det != 0.0 && t > tmin && t < tmax) {
+        return None;
+    }
+    if e.contains(&0.0) {
+        return refine(tri, r, tmin, tmax);
+    }
+    Some((t, b1, b2))
+}
+
+/// The watertight test's last stage, for a candidate hit whose f32 edge functions include an
+/// exact 0 (the ray passes through an edge or a vertex, or rounding made it look so): the edge
+/// functions again in f64 ([`edge_fns_f64`]), then the sign and distance tests with them.
+/// `(t, b1, b2)` if it is still a hit. Out of line: it is rare.
+#[cold]
+#[inline(never)]
+fn refine(tri: &Tri, r: &RayTri, tmin: f32, tmax: f32) -> Option<(f32, f32, f32)> {
+    #[cfg(test)]
+    watertight_tests::REFINES.with(|c| c.set(c.get() + 1));
+    let (q, z) = sheared(tri, r);
+    let e = edge_fns_f64(q);
+    if !same_sign(e) {
+        return None;
+    }
+    let (det, t, b1, b2) = solve(e, z, r.s[2]);
+    (det != 0.0 && t > tmin && t < tmax).then_some((t, b1, b2))
+}
+
+/// [`refine`] for lane `l` of `pk` and the rays of `p` in `m`, which the packet kernels found
+/// hit with an edge function exactly 0 (and have not recorded): writes the hits that remain to
+/// `p` (distance, barycentrics) and returns their lanes.
+#[cold]
+#[inline(never)]
+fn refine_pack(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, mut m: u32) -> u32 {
+    let tri = pk.tri(l);
+    let mut hit = 0;
+    while m != 0 {
+        let r = m.trailing_zeros() as usize;
+        m &= m - 1;
+        if let Some((t, b1, b2)) = refine(&tri, &p.ray_tri(r), tmin, p.tmax[r]) {
+            (p.tmax[r], p.b1[r], p.b2[r]) = (t, b1, b2);
+            hit |= 1 << r;
+        }
+    }
+    hit
+}
+
+/// [`intersect_tri`] on four triangles at once: the closest hit in `(tmin, tmax)` (the lowest
+/// lane among equal distances). Per lane the operations of [`tri_test`], in the same order.
+#[inline(always)]
+fn intersect_tri4(pk: &Tri4, r: &RayTri, tmin: f32, tmax: f32) -> Option<Hit> {
+    use simd4::F4;
+    let [kx, ky, kz] = r.k;
+    let (sx, sy, sz) = (F4::splat(r.s[0]), F4::splat(r.s[1]), F4::splat(r.s[2]));
+    let (ox, oy, oz) = (F4::splat(r.o[0]), F4::splat(r.o[1]), F4::splat(r.o[2]));
+    // As `sheared`, four triangles at a time.
+    let vert = |v: &[[f32; 4]; 3]| {
+        let z = F4::load(&v[kz]) - oz;
+        ((F4::load(&v[kx]) - ox) - sx * z, (F4::load(&v[ky]) - oy) - sy * z, z)
+    };
+    let (ax, ay, az) = vert(&pk.p0);
+    let (bx, by, bz) = vert(&pk.p1);
+    let (cx, cy, cz) = vert(&pk.p2);
+    let u = cx * by - cy * bx;
+    let v = ax * cy - ay * cx;
+    let w = bx * ay - by * ax;
+    let zero = F4::splat(0.0);
+    // One exit, after the distance test (as the packet kernels' exit after the sign test, it
+    // measured no faster for single rays: the leaf a ray starts next to passes it anyway).
+    let mut ok = (u.min(v).min(w).ge(zero) | u.max(v).max(w).le(zero)).bits();
+    ok &= !(0..4).fold(0, |m, i| m | ((pk.prim[i] == r.skip) as u32) << i);
+    let det = u + v + w;
+    let inv = F4::splat(1.0) / det;
+    let t = (u * az + v * bz + w * cz) * sz * inv;
+    ok &= (det.ne(zero) & t.gt(F4::splat(tmin)) & t.lt(F4::splat(tmax))).bits();
+    if ok == 0 {
+        return None;
+    }
+    let (mut t, mut b1, mut b2) = (t.to_array(), (v * inv).to_array(), (w * inv).to_array());
+    let fix = ok & (u.eq(zero) | v.eq(zero) | w.eq(zero)).bits();
+    if fix != 0 {
+        ok &= !fix;
+        let mut m = fix;
+        while m != 0 {
+            let i = m.trailing_zeros() as usize;
+            m &= m - 1;
+            if let Some(h) = refine(&pk.tri(i), r, tmin, tmax) {
+                (t[i], b1[i], b2[i]) = h;
+                ok |= 1 << i;
+            }
+        }
     }
     let mut best: Option<(usize, f32)> = None;
     let mut tb = tmax;
-    for i in 0..4 {
-        if ok[i] && t[i] < tb {
-            tb = t[i];
+    for (i, &ti) in t.iter().enumerate() {
+        if ok >> i & 1 != 0 && ti < tb {
+            tb = ti;
             best = Some((i, tb));
         }
     }
     let (i, t) = best?;
-    let lane = |a: &[[f32; 4]; 3]| V3::new(a[0][i], a[1][i], a[2][i]);
     Some(Hit {
         t,
         b1: b1[i],
         b2: b2[i],
         prim: pk.prim[i],
-        p: lane(&pk.p0) + lane(&pk.e1) * b1[i] + lane(&pk.e2) * b2[i],
+        p: pk.point(i, b1[i], b2[i]),
     })
 }
 
-/// Möller–Trumbore; returns `(t, b1, b2)` for a hit in `(tmin, tmax)`. Two-sided.
-#[inline]
-pub fn intersect_tri(tri: &Tri, ray: &Ray, tmin: f32, tmax: f32) -> Option<(f32, f32, f32)> {
-    let p = ray.d.cross(tri.e2);
-    let det = tri.e1.dot(p);
-    if det.abs() < 1e-20 {
-        return None;
-    }
-    let inv = 1.0 / det;
-    let s = ray.o - tri.p0;
-    let b1 = s.dot(p) * inv;
-    if !(0.0..=1.0).contains(&b1) {
-        return None;
-    }
-    let q = s.cross(tri.e1);
-    let b2 = ray.d.dot(q) * inv;
-    if b2 < 0.0 || b1 + b2 > 1.0 {
-        return None;
-    }
-    let t = tri.e2.dot(q) * inv;
-    if t > tmin && t < tmax {
-        Some((t, b1, b2))
-    } else {
-        None
-    }
-}
+#[cfg(test)]
+mod watertight_tests;
 
 #[cfg(test)]
 mod tests {
@@ -1502,10 +1807,15 @@ mod tests {
         let mut rng = Rng::new(seed);
         let mut r = || rng.uniform(-1.0, 1.0);
         (0..n)
-            .map(|_| Tri {
-                p0: V3::new(r() * 5.0, r() * 5.0, r() * 5.0),
-                e1: V3::new(r(), r(), r()) * 0.5,
-                e2: V3::new(r(), r(), r()) * 0.5,
+            .map(|_| {
+                let p0 = V3::new(r() * 5.0, r() * 5.0, r() * 5.0);
+                let e1 = V3::new(r(), r(), r()) * 0.5;
+                let e2 = V3::new(r(), r(), r()) * 0.5;
+                Tri {
+                    p0,
+                    p1: p0 + e1,
+                    p2: p0 + e2,
+                }
             })
             .collect()
     }
@@ -1520,16 +1830,8 @@ mod tests {
         for j in 0..n - 1 {
             for i in 0..n - 1 {
                 let (a, b, c, d) = (p(i, j), p(i + 1, j), p(i, j + 1), p(i + 1, j + 1));
-                tris.push(Tri {
-                    p0: a,
-                    e1: c - a,
-                    e2: b - a,
-                });
-                tris.push(Tri {
-                    p0: b,
-                    e1: c - b,
-                    e2: d - b,
-                });
+                tris.push(Tri { p0: a, p1: c, p2: b });
+                tris.push(Tri { p0: b, p1: c, p2: d });
             }
         }
         tris
@@ -1593,7 +1895,7 @@ mod tests {
             assert_eq!(other, Some(t), "prim {j} instead of {i}");
         }
         let tj = &tris[j];
-        assert_eq!(h.p, tj.p0 + tj.e1 * h.b1 + tj.e2 * h.b2);
+        assert_eq!(h.p, tj.point(h.b1, h.b2));
     }
 
     /// Packet queries against brute force: bundles of nearly parallel rays from one origin
@@ -1687,7 +1989,7 @@ mod tests {
                 on = rng.below(tris.len());
                 let t = &tris[on];
                 let (a, b) = (rng.f32() * 0.5, rng.f32() * 0.5);
-                t.p0 + t.e1 * a + t.e2 * b
+                t.point(a, b)
             } else {
                 V3::new(rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0), rng.uniform(-8.0, 8.0))
             };
@@ -1730,7 +2032,7 @@ mod tests {
                     }
                     assert_eq!(sorted[h.prim as usize].p0, tris[j].p0);
                     let tj = &tris[j];
-                    assert_eq!(h.p, tj.p0 + tj.e1 * h.b1 + tj.e2 * h.b2, "ray {k}");
+                    assert_eq!(h.p, tj.point(h.b1, h.b2), "ray {k}");
                 }
                 (w, g) => panic!("ray {k}: brute {w:?} vs bvh {g:?}"),
             }
@@ -1753,10 +2055,11 @@ mod tests {
         let tris: Vec<Tri> = (0..240)
             .map(|k| {
                 let s = 1.25f32.powi(k);
+                let p0 = V3::new(-s, -s, 1.0 + k as f32);
                 Tri {
-                    p0: V3::new(-s, -s, 1.0 + k as f32),
-                    e1: V3::new(3.0 * s, 0.0, 0.0),
-                    e2: V3::new(0.0, 3.0 * s, 0.0),
+                    p0,
+                    p1: p0 + V3::new(3.0 * s, 0.0, 0.0),
+                    p2: p0 + V3::new(0.0, 3.0 * s, 0.0),
                 }
             })
             .collect();
@@ -1834,7 +2137,7 @@ mod tests {
             assert_eq!(bits(a), bits(b), "node {k}");
         }
         for (k, (a, b)) in par.packets.iter().zip(&seq.packets).enumerate() {
-            let bits = |p: &Tri4| [p.p0, p.e1, p.e2].map(|m| m.map(|row| row.map(f32::to_bits)));
+            let bits = |p: &Tri4| [p.p0, p.p1, p.p2].map(|m| m.map(|row| row.map(f32::to_bits)));
             assert_eq!((bits(a), a.prim), (bits(b), b.prim), "packet {k}");
         }
         // And the tree answers queries as brute force does.
@@ -1915,7 +2218,7 @@ mod tests {
                             let on = base + rng.below(40);
                             let t = &tris[on];
                             let (a, b) = (rng.f32() * 0.5, rng.f32() * 0.5);
-                            let o = t.p0 + t.e1 * a + t.e2 * b;
+                            let o = t.point(a, b);
                             let q = corner + V3::new(rng.f32(), rng.f32(), 0.0);
                             let dist = (q - o).length();
                             let tm = if finite { dist * (1.0 - 1e-3) } else { f32::INFINITY };
@@ -1970,10 +2273,13 @@ mod tests {
         }
         // Many coincident triangles: no SAH split exists, so median splits build the tree.
         let same: Vec<Tri> = (0..500)
-            .map(|i| Tri {
-                p0: V3::new(-1.0, -1.0, 0.001 * (i % 7) as f32),
-                e1: V3::new(2.0, 0.0, 0.0),
-                e2: V3::new(0.0, 2.0, 0.0),
+            .map(|i| {
+                let p0 = V3::new(-1.0, -1.0, 0.001 * (i % 7) as f32);
+                Tri {
+                    p0,
+                    p1: p0 + V3::new(2.0, 0.0, 0.0),
+                    p2: p0 + V3::new(0.0, 2.0, 0.0),
+                }
             })
             .collect();
         check(&same, 300, 4);

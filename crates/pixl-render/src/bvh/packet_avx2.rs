@@ -5,8 +5,11 @@
 //! Contract: the same per-lane results as the portable body — every lane's box and triangle
 //! tests are the same IEEE operations in the same order (sub, mul, add and div only; no FMA,
 //! no reciprocal estimates; `maxps`/`minps` operand order chosen so that NaN keeps the
-//! accumulated slab bound exactly as the portable `if t0x > t0 { t0x } else { t0 }`), so hit
-//! distances and barycentrics are bit-identical to [`super::intersect_tri`]'s. A half of 8
+//! accumulated slab bound exactly as the portable `if t0x > t0 { t0x } else { t0 }`, and the
+//! watertight test's sign test is [`super::same_sign`]'s), so hit distances and barycentrics
+//! are bit-identical to [`super::intersect_tri`]'s. The watertight test's per-lane axis
+//! permutation picks rows when the active lanes share `kz` (most packets), else blends per
+//! lane; its f64 stage runs out of line, lane by lane ([`super::refine_pack`]). A half of 8
 //! lanes without active rays is skipped, so packets of up to 8 rays cost about half.
 //!
 //! Why: the portable body's lane loops compile to per-lane selects and bit gathers (~120 ns per
@@ -14,7 +17,7 @@
 //! which makes packets of a pixel's divergent bounce and shadow rays cheaper than tracing them
 //! one by one (git history of BENCHMARKS.md).
 use super::packet_simd::Lanes;
-use super::{Bvh, Node, RayPack, Tri4, NW, PACKET};
+use super::{refine_pack, Bvh, Node, RayPack, Tri4, NW, PACKET};
 use std::arch::x86_64::*;
 
 /// Lanes per vector; a packet is `HALVES` vectors.
@@ -86,19 +89,145 @@ fn hmax_u32(v: __m256i) -> u32 {
     _mm256_cvtsi256_si32(x) as u32
 }
 
+/// Per lane, `if0` where mask `k0` is set, else `if1` where `k1` is set, else `if2`.
+#[inline]
+#[target_feature(enable = "avx2")]
+fn pick3(k0: __m256, k1: __m256, if0: __m256, if1: __m256, if2: __m256) -> __m256 {
+    _mm256_blendv_ps(_mm256_blendv_ps(if2, if1, k1), if0, k0)
+}
+
+/// The lanes whose edge functions `u`, `v`, `w` allow a hit (all ≥ 0 or all ≤ 0), as a mask,
+/// tested as [`super::same_sign`] does: on their smallest and largest (`vminps`/`vmaxps` in its
+/// operand order).
+#[inline]
+#[target_feature(enable = "avx2")]
+fn same_sign(u: __m256, v: __m256, w: __m256) -> __m256 {
+    let zero = _mm256_setzero_ps();
+    let lo = _mm256_min_ps(_mm256_min_ps(u, v), w);
+    let hi = _mm256_max_ps(_mm256_max_ps(u, v), w);
+    _mm256_or_ps(
+        _mm256_cmp_ps::<_CMP_GE_OQ>(lo, zero),
+        _mm256_cmp_ps::<_CMP_LE_OQ>(hi, zero),
+    )
+}
+
 /// The AVX2 kernel's per-traversal state: per half and axis, the lanes whose direction is
-/// negative (as a vector mask, and as bits).
+/// negative (as a vector mask, and as bits), and the lanes whose shear axis `kz` is x and y
+/// (vector masks).
 pub(super) struct Avx2 {
     neg: [[__m256; 3]; HALVES],
     neg_bits: [u32; 3],
+    kz: [[__m256; 2]; HALVES],
 }
 
 impl Bvh {
     /// Packet traversal with the AVX2 kernel (see [`super::packet_simd`]).
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     pub(super) fn traverse_packet_avx2<const ANY: bool>(&self, start: u32, act: u32, p: &mut RayPack, tmin: f32) {
+        p.prepare_shear();
         // SAFETY: this function is compiled for, and only called with, the kernel's features.
         unsafe { self.packet_traverse::<Avx2, ANY>(start, act, p, tmin) }
+    }
+}
+
+impl Avx2 {
+    /// Lane `l` of `pk` against the rays of `p` in `act` (the watertight test, the operations
+    /// of [`super::intersect_tri`] per lane; with `UNI` every active ray's axes are `k`, else
+    /// each lane's are blended per lane); lanes hit closer than their limit get the distance
+    /// and barycentrics written and are returned as a mask.
+    #[inline]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn tri<const UNI: bool>(&self, pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32, k: [usize; 3]) -> u32 {
+        let (mul, sub, add, and, or) = (_mm256_mul_ps, _mm256_sub_ps, _mm256_add_ps, _mm256_and_ps, _mm256_or_ps);
+        let zero = _mm256_setzero_ps();
+        let prim = _mm256_set1_epi32(pk.prim[l] as i32);
+        let mut out = 0u32;
+        for h in 0..HALVES {
+            if (act >> (W * h)) & 0xff == 0 {
+                continue;
+            }
+            // Per vertex and lane: the vertex relative to the ray origin, axes permuted to the
+            // lane's (kx, ky, kz) — when the active lanes share kz, by picking rows; else by
+            // blends.
+            let rel = |v: &[[f32; 4]; 3], a: usize| sub(_mm256_set1_ps(v[a][l]), ld(&p.o[a], h));
+            let [a, b, c] = if UNI {
+                let [kx, ky, kz] = k;
+                let perm = |v: &[[f32; 4]; 3]| [rel(v, kx), rel(v, ky), rel(v, kz)];
+                [perm(&pk.p0), perm(&pk.p1), perm(&pk.p2)]
+            } else {
+                let [k0, k1] = self.kz[h];
+                // kz = 0: (y, z, x); kz = 1: (z, x, y); kz = 2: (x, y, z).
+                let perm = |v: &[[f32; 4]; 3]| {
+                    let (x, y, z) = (rel(v, 0), rel(v, 1), rel(v, 2));
+                    [pick3(k0, k1, y, z, x), pick3(k0, k1, z, x, y), pick3(k0, k1, x, y, z)]
+                };
+                [perm(&pk.p0), perm(&pk.p1), perm(&pk.p2)]
+            };
+            let (sx, sy, sz) = (ld(&p.sh[0], h), ld(&p.sh[1], h), ld(&p.sh[2], h));
+            let (ax, ay) = (sub(a[0], mul(sx, a[2])), sub(a[1], mul(sy, a[2])));
+            let (bx, by) = (sub(b[0], mul(sx, b[2])), sub(b[1], mul(sy, b[2])));
+            let (cx, cy) = (sub(c[0], mul(sx, c[2])), sub(c[1], mul(sy, c[2])));
+            let u = sub(mul(cx, by), mul(cy, bx));
+            let v = sub(mul(ax, cy), mul(ay, cx));
+            let w = sub(mul(bx, ay), mul(by, ax));
+            let mut ok = and(lane_mask(act, h), same_sign(u, v, w));
+            if _mm256_movemask_ps(ok) == 0 {
+                continue;
+            }
+            let same = _mm256_castsi256_ps(_mm256_cmpeq_epi32(prim, ld_u32(&p.skip, h)));
+            ok = _mm256_andnot_ps(same, ok);
+            let det = add(add(u, v), w);
+            ok = and(ok, _mm256_cmp_ps::<_CMP_NEQ_UQ>(det, zero));
+            let tz = add(add(mul(u, a[2]), mul(v, b[2])), mul(w, c[2]));
+            let inv = _mm256_div_ps(_mm256_set1_ps(1.0), det);
+            let t = mul(mul(tz, sz), inv);
+            let tmax = ld(&p.tmax, h);
+            ok = and(ok, _mm256_cmp_ps::<_CMP_GT_OQ>(t, _mm256_set1_ps(tmin)));
+            ok = and(ok, _mm256_cmp_ps::<_CMP_LT_OQ>(t, tmax));
+            if _mm256_movemask_ps(ok) == 0 {
+                continue;
+            }
+            let zu = _mm256_cmp_ps::<_CMP_EQ_OQ>(u, zero);
+            let zv = _mm256_cmp_ps::<_CMP_EQ_OQ>(v, zero);
+            let zw = _mm256_cmp_ps::<_CMP_EQ_OQ>(w, zero);
+            let fix = and(ok, or(or(zu, zv), zw));
+            ok = _mm256_andnot_ps(fix, ok);
+            let bits = _mm256_movemask_ps(ok) as u32;
+            if bits != 0 {
+                st(&mut p.tmax, h, _mm256_blendv_ps(tmax, t, ok));
+                let (old1, old2) = (ld(&p.b1, h), ld(&p.b2, h));
+                st(&mut p.b1, h, _mm256_blendv_ps(old1, mul(v, inv), ok));
+                st(&mut p.b2, h, _mm256_blendv_ps(old2, mul(w, inv), ok));
+                out |= bits << (W * h);
+            }
+            let fix = _mm256_movemask_ps(fix) as u32;
+            if fix != 0 {
+                // A hit with an edge function exactly 0: those lanes' last stage in f64.
+                out |= refine_pack(pk, l, p, tmin, fix << (W * h));
+            }
+        }
+        out
+    }
+}
+
+impl Avx2 {
+    /// [`Lanes::leaf_mixed`]: the triangles of leaf packets `pks` in turn with
+    /// [`Avx2::tri`], axes blended lane by lane.
+    #[inline(never)]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    fn leaf_mixed(&self, pks: &[Tri4], p: &mut RayPack, tmin: f32, act: u32) -> u32 {
+        let mut hit = 0u32;
+        for pk in pks {
+            for l in 0..4 {
+                if pk.prim[l] == u32::MAX {
+                    break;
+                }
+                let m = self.tri::<false>(pk, l, p, tmin, act, [0, 1, 2]);
+                p.record(m, pk, l);
+                hit |= m;
+            }
+        }
+        hit
     }
 }
 
@@ -112,7 +241,8 @@ impl Lanes for Avx2 {
         let neg_bits = std::array::from_fn(|a| {
             (0..HALVES).fold(0u32, |m, h| m | (_mm256_movemask_ps(neg[h][a]) as u32) << (W * h))
         });
-        Avx2 { neg, neg_bits }
+        let kz = std::array::from_fn(|h| [lane_mask(p.kz[0], h), lane_mask(p.kz[1], h)]);
+        Avx2 { neg, neg_bits, kz }
     }
 
     #[inline(always)]
@@ -188,56 +318,14 @@ impl Lanes for Avx2 {
 
     #[inline]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn tri(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
-        let s = |v: f32| _mm256_set1_ps(v);
-        let (e1x, e1y, e1z) = (s(pk.e1[0][l]), s(pk.e1[1][l]), s(pk.e1[2][l]));
-        let (e2x, e2y, e2z) = (s(pk.e2[0][l]), s(pk.e2[1][l]), s(pk.e2[2][l]));
-        let (p0x, p0y, p0z) = (s(pk.p0[0][l]), s(pk.p0[1][l]), s(pk.p0[2][l]));
-        let prim = _mm256_set1_epi32(pk.prim[l] as i32);
-        let (one, zero, tiny, tminv) = (s(1.0), s(0.0), s(1e-20), s(tmin));
-        let abs_mask = _mm256_castsi256_ps(_mm256_set1_epi32(0x7fff_ffff));
-        let (mul, sub, add) = (_mm256_mul_ps, _mm256_sub_ps, _mm256_add_ps);
-        let mut out = 0u32;
-        for h in 0..HALVES {
-            if (act >> (W * h)) & 0xff == 0 {
-                continue;
-            }
-            let (dx, dy, dz) = (ld(&p.d[0], h), ld(&p.d[1], h), ld(&p.d[2], h));
-            let (ox, oy, oz) = (ld(&p.o[0], h), ld(&p.o[1], h), ld(&p.o[2], h));
-            let px = sub(mul(dy, e2z), mul(dz, e2y));
-            let py = sub(mul(dz, e2x), mul(dx, e2z));
-            let pz = sub(mul(dx, e2y), mul(dy, e2x));
-            let det = add(add(mul(e1x, px), mul(e1y, py)), mul(e1z, pz));
-            let inv = _mm256_div_ps(one, det);
-            let (sx, sy, sz) = (sub(ox, p0x), sub(oy, p0y), sub(oz, p0z));
-            let u = mul(add(add(mul(sx, px), mul(sy, py)), mul(sz, pz)), inv);
-            let qx = sub(mul(sy, e1z), mul(sz, e1y));
-            let qy = sub(mul(sz, e1x), mul(sx, e1z));
-            let qz = sub(mul(sx, e1y), mul(sy, e1x));
-            let v = mul(add(add(mul(dx, qx), mul(dy, qy)), mul(dz, qz)), inv);
-            let tt = mul(add(add(mul(e2x, qx), mul(e2y, qy)), mul(e2z, qz)), inv);
-            let tmax = ld(&p.tmax, h);
-            let and = _mm256_and_ps;
-            let mut ok = _mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_and_ps(det, abs_mask), tiny);
-            ok = and(ok, _mm256_cmp_ps::<_CMP_GE_OQ>(u, zero));
-            ok = and(ok, _mm256_cmp_ps::<_CMP_LE_OQ>(u, one));
-            ok = and(ok, _mm256_cmp_ps::<_CMP_GE_OQ>(v, zero));
-            ok = and(ok, _mm256_cmp_ps::<_CMP_LE_OQ>(add(u, v), one));
-            ok = and(ok, _mm256_cmp_ps::<_CMP_GT_OQ>(tt, tminv));
-            ok = and(ok, _mm256_cmp_ps::<_CMP_LT_OQ>(tt, tmax));
-            ok = and(ok, lane_mask(act, h));
-            let same = _mm256_castsi256_ps(_mm256_cmpeq_epi32(prim, ld_u32(&p.skip, h)));
-            ok = _mm256_andnot_ps(same, ok);
-            let bits = _mm256_movemask_ps(ok) as u32;
-            if bits != 0 {
-                st(&mut p.tmax, h, _mm256_blendv_ps(tmax, tt, ok));
-                let (b1, b2) = (ld(&p.b1, h), ld(&p.b2, h));
-                st(&mut p.b1, h, _mm256_blendv_ps(b1, u, ok));
-                st(&mut p.b2, h, _mm256_blendv_ps(b2, v, ok));
-                out |= bits << (W * h);
-            }
-        }
-        out
+    unsafe fn tri_uniform(&self, pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32, k: [usize; 3]) -> u32 {
+        self.tri::<true>(pk, l, p, tmin, act, k)
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn leaf_mixed(&self, pks: &[Tri4], p: &mut RayPack, tmin: f32, act: u32) -> u32 {
+        Avx2::leaf_mixed(self, pks, p, tmin, act)
     }
 
     #[inline]
@@ -366,4 +454,16 @@ fn lanes_max(v: &[f32; PACKET], act: u32) -> f32 {
         _mm256_blendv_ps(ninf, ld(v, 1), lane_mask(act, 1)),
     );
     hmax(m)
+}
+
+/// The kernel's triangle test on its own (for tests of the kernels).
+#[cfg(test)]
+#[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+pub(super) fn tri_alone(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32 {
+    // SAFETY: this function is compiled for, and only called with, the kernel's features.
+    let k = unsafe { Avx2::new(p) };
+    match p.uniform_kz(act) {
+        Some(kz) => k.tri::<true>(pk, l, p, tmin, act, super::axes(kz)),
+        None => k.tri::<false>(pk, l, p, tmin, act, [0, 1, 2]),
+    }
 }

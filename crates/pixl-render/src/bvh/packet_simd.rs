@@ -39,10 +39,16 @@ pub(super) trait Lanes: Sized {
         near: [usize; 3],
         far: [usize; 3],
     ) -> ([u32; NW], [u32; NW]);
-    /// Lane `l` of `pk` against the rays of `p` in `act` (the operations of
-    /// [`super::intersect_tri`]); lanes hit closer than their limit get the distance and
-    /// barycentrics written and are returned as a mask.
-    unsafe fn tri(pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32) -> u32;
+    /// Lane `l` of `pk` against the rays of `p` in `act`, which share their axes `k` (`[kx, ky,
+    /// kz]`, see [`super::RayPack::uniform_kz`]) — the watertight test, the operations of
+    /// [`super::intersect_tri`] per lane: lanes hit closer than their limit get the distance
+    /// and barycentrics written and are returned as a mask.
+    unsafe fn tri_uniform(&self, pk: &Tri4, l: usize, p: &mut RayPack, tmin: f32, act: u32, k: [usize; 3]) -> u32;
+    /// Every triangle of leaf packets `pks` against the rays of `p` in `act`, whose axes differ
+    /// (the same test with the axes permuted lane by lane), hits recorded
+    /// ([`RayPack::record`]); returns the lanes hit. Out of line: a leaf per call, so that the
+    /// common case, [`Lanes::tri_uniform`], stays small enough to inline into the loop.
+    unsafe fn leaf_mixed(&self, pks: &[Tri4], p: &mut RayPack, tmin: f32, act: u32) -> u32;
     /// The largest of `v`'s values in the lanes of `act` (−∞ if none).
     unsafe fn lanes_max(v: &[f32; PACKET], act: u32) -> f32;
     /// The largest limit among the lanes in `m`, as bits (limits are ≥ +0 or +∞).
@@ -119,17 +125,25 @@ impl Bvh {
                     continue;
                 }
             } else if act != 0 && cur != EMPTY {
-                let mut hit = 0u32;
-                for pk in self.leaf_packets(cur) {
-                    for l in 0..4 {
-                        if pk.prim[l] == u32::MAX {
-                            break;
+                let pks = self.leaf_packets(cur);
+                let hit = match p.uniform_kz(act) {
+                    Some(kz) => {
+                        let axes = super::axes(kz);
+                        let mut hit = 0u32;
+                        for pk in pks {
+                            for l in 0..4 {
+                                if pk.prim[l] == u32::MAX {
+                                    break;
+                                }
+                                let m = unsafe { k.tri_uniform(pk, l, p, tmin, act, axes) };
+                                p.record(m, pk, l);
+                                hit |= m;
+                            }
                         }
-                        let m = unsafe { K::tri(pk, l, p, tmin, act) };
-                        p.record(m, pk, l);
-                        hit |= m;
+                        hit
                     }
-                }
+                    None => unsafe { k.leaf_mixed(pks, p, tmin, act) },
+                };
                 if !ANY && hit != 0 {
                     if let Some(f) = &mut frustum {
                         f.tmax = unsafe { K::lanes_max(&p.tmax, act0) };
