@@ -7,7 +7,8 @@
 //! many times and also prints the minimum and median wall time — the VM's host adds ±10 % from
 //! run to run; `PIXL_BENCH_WIDTH=N` renders N×N pixels instead; `render-only` skips the ray
 //! timings, e.g. for profiling; `PIXL_BENCH_SAVE=DIR` also writes the scene to `DIR/scene.toml`
-//! with its mesh, for timing `pixl render` end to end).
+//! with its mesh, for timing `pixl render` end to end; `PIXL_BENCH_SAMPLER=independent` renders
+//! with the independent sampler instead of the default Sobol one).
 //!
 //! After the render it also times ray casting alone on the main thread (a load-independent
 //! figure: rays per second per thread) for three ray kinds made from the camera view: primary
@@ -17,6 +18,7 @@ use pixl_core::Rng;
 use pixl_render::bvh::Ray;
 use pixl_render::integrator::Renderer;
 use pixl_render::math::Frame;
+use pixl_render::sampler::Sampler;
 use pixl_render::sampling::cosine_hemisphere;
 use pixl_render::scene::{AreaShape, Camera, Color, Light, Material, Object, Scene, Shape, Transform, World};
 use pixl_render::{Mesh, RenderOptions};
@@ -104,8 +106,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ..Default::default()
     };
     let (t0, c0) = (Instant::now(), process_cpu_s());
-    let r = Renderer::new(&scene, &opts)?;
+    let mut r = Renderer::new(&scene, &opts)?;
     let (t_build, c_build) = (t0.elapsed().as_secs_f64(), process_cpu_s() - c0);
+    r.sampler = match std::env::var("PIXL_BENCH_SAMPLER").as_deref() {
+        Ok("independent") => Sampler::Independent,
+        Ok("sobol") | Err(_) => Sampler::Sobol,
+        Ok(other) => return Err(format!("PIXL_BENCH_SAMPLER={other}: sobol or independent").into()),
+    };
     let repeat: usize = args.get(4).map(|s| s.parse()).transpose()?.unwrap_or(1).max(1);
     let mut walls = Vec::new();
     let (mut film, mut t_render, mut c_render) = (None, 0.0, 0.0);
@@ -123,13 +130,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         (h ^ v.to_bits() as u64).wrapping_mul(0x100_0000_01b3)
     });
     println!(
-        "{} triangles, {} BVH nodes, {} leaf packets, {}x{} @ {} spp, {} threads: load+BVH {:.2} s (CPU {:.2} s), render {:.2} s (CPU {:.2} s) (mean Combined {:.4}, bits {:016x})",
+        "{} triangles, {} BVH nodes, {} leaf packets, {}x{} @ {} spp, {:?} sampler, {} threads: load+BVH {:.2} s (CPU {:.2} s), render {:.2} s (CPU {:.2} s) (mean Combined {:.4}, bits {:016x})",
         r.geom.tris.len(),
         r.geom.bvh.num_nodes(),
         r.geom.bvh.num_packets(),
         film.width,
         film.height,
         spp,
+        r.sampler,
         rayon::current_num_threads(),
         t_build,
         c_build,

@@ -3,10 +3,20 @@
 //! Layers (pbrt-style): [`render`] (pixels in parallel with rayon, at least a row per task) →
 //! `render_pixel` (samples of one pixel) → `trace_packet` (up to [`PACKET`] camera paths of
 //! that pixel in lockstep, one vertex at a time, so that their camera, shadow and continuation
-//! rays share BVH traversals as packets). Each `(pixel, sample)` draws from its own random
-//! stream `Rng::for_stream(seed, [pixel, sample])` and keeps its own order of operations, so
-//! the image is bit-identical for a given seed whatever the thread count, the scheduling or
-//! how rays are grouped (tested: lockstep = each sample traced alone).
+//! rays share BVH traversals as packets).
+//!
+//! Random numbers ([`crate::sampler`], chosen by [`Renderer::sampler`]): each `(pixel, sample)`
+//! asks for its uniforms by *dimension*, fixed per decision and bounce — pixel position
+//! (dimension 0), then per bounce `b` a block of five: light pick (1-D), light position (2-D),
+//! BSDF lobe (1-D), BSDF direction (2-D), Russian roulette (1-D) (`sampler::dim`). The default
+//! [`Sampler::Sobol`] gives every dimension its own padded, Owen-scrambled 2-D Sobol sequence
+//! seeded per `(seed, pixel, dimension)`, so at 2^k spp each pair of a pixel is a (0,k,2)-net
+//! (low discrepancy: error falling faster than `spp^-0.5`); [`Sampler::Independent`] draws
+//! from the stream `Rng::for_stream(seed, [pixel, sample])` in call order (the earlier images,
+//! bit for bit). Either way a sample's numbers depend only on `(seed, pixel, sample, dimension)`
+//! and each sample keeps its own order of operations, so the image is bit-identical for a given
+//! seed and sampler whatever the thread count, the scheduling or how rays are grouped (tested:
+//! lockstep = each sample traced alone).
 //!
 //! Per path vertex: one light is picked by power and sampled (NEE; MIS with the BSDF pdf for
 //! area, world and emissive-triangle lights, none for delta lights), then the BSDF is sampled
@@ -29,9 +39,9 @@ use crate::geometry::{Geometry, SurfaceHit};
 use crate::light::Lights;
 use crate::material::{Bsdf, BsdfEval, BsdfSample};
 use crate::math::V3;
+use crate::sampler::{PacketSampler, Sampler};
 use crate::sampling::power_heuristic;
 use crate::scene::Scene;
-use pixl_core::Rng;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// How to render.
@@ -80,6 +90,8 @@ pub struct Renderer {
     pub width: u32,
     pub height: u32,
     pub opts: RenderOptions,
+    /// Where the paths' uniform numbers come from ([`Sampler::Sobol`] unless changed).
+    pub sampler: Sampler,
 }
 
 impl Renderer {
@@ -105,6 +117,7 @@ impl Renderer {
             width,
             height,
             opts: opts.clone(),
+            sampler: Sampler::default(),
         })
     }
 
@@ -123,8 +136,8 @@ impl Renderer {
 
     /// The sums of all samples of pixel `(x, y)`. Up to [`PACKET`] samples advance together,
     /// one path vertex at a time ([`Renderer::trace_packet`]), so their camera, shadow and
-    /// bounce rays can share BVH traversals; each sample still draws from its own stream in
-    /// the same order, so the result equals tracing them one by one.
+    /// bounce rays can share BVH traversals; each sample still draws its own numbers in the
+    /// same order, so the result equals tracing them one by one.
     pub fn render_pixel(&self, x: usize, y: usize) -> PixelSum {
         #[cfg(target_arch = "x86_64")]
         if Isa::detect() >= Isa::Avx2 {
@@ -178,15 +191,14 @@ impl Renderer {
         let geom = &self.geom;
         let lights = &self.lights;
         let mut sums = [PixelSum::default(); PACKET];
-        // Streams and camera rays for the `n` samples of this packet only (a low-spp render
-        // would otherwise pay for all PACKET lanes).
-        let mut rngs: [Rng; PACKET] = std::array::from_fn(|_| Rng::from_state([0; 4]));
-        // Camera rays (lane = slot), one packet whatever their number.
+        // The samples' uniform numbers, lane j = sample s0 + j (each decision draws from its own
+        // dimension; the live paths are at the same vertex).
+        let mut smp = PacketSampler::start(self.sampler, self.opts.seed, pixel, s0 as u32, n);
+        // Camera rays (lane = slot), one packet whatever their number; only the `n` samples of
+        // this packet are traced (a low-spp render would otherwise pay for all PACKET lanes).
         let mut camera = Batch::new();
         for j in 0..n {
-            let rng = &mut rngs[j];
-            *rng = Rng::for_stream(self.opts.seed, &[pixel, (s0 + j) as u64]);
-            let (u, v) = (rng.f32(), rng.f32());
+            let [u, v] = smp.camera(j);
             camera.push(j, self.camera.ray(x as f32 + u, y as f32 + v), f32::INFINITY);
         }
         let mut hits = [None; PACKET];
@@ -205,22 +217,26 @@ impl Renderer {
         // nothing is cleared between iterations).
         let (mut shadow, mut bounce) = (Batch::new(), Batch::new());
         let mut samples: [Option<BsdfSample>; PACKET] = [None; PACKET];
+        // Every live path is at vertex `depth` (all start at the camera hit and advance one
+        // vertex per iteration).
+        let mut depth = 0;
         loop {
+            smp.begin_vertex(depth);
             // Russian roulette, then next-event estimation: light samples and shadow rays.
             shadow.len = 0;
             for j in 0..n {
                 let Some(path) = &mut paths[j] else { continue };
-                let rng = &mut rngs[j];
-                if path.depth >= 3 {
+                debug_assert_eq!(path.depth, depth);
+                if depth >= 3 {
                     let q = path.beta.max_comp().min(0.95);
-                    if !(rng.f32() < q) {
+                    if !(smp.roulette(j) < q) {
                         paths[j] = None;
                         continue;
                     }
                     path.beta = path.beta / q;
                 }
                 if path.bsdf.has_smooth() && !lights.is_empty() {
-                    let (up, u1, u2) = (rng.f32(), rng.f32(), rng.f32());
+                    let (up, [u1, u2]) = smp.light(j);
                     if let Some(ls) = lights.sample(geom, path.hit.p, up, u1, u2) {
                         let e: BsdfEval = path.bsdf.eval(ls.wi);
                         if !e.total().is_zero() && ls.pdf > 0.0 {
@@ -260,8 +276,7 @@ impl Renderer {
                         }
                     }
                 }
-                let rng = &mut rngs[j];
-                let (ul, u1, u2) = (rng.f32(), rng.f32(), rng.f32());
+                let (ul, [u1, u2]) = smp.bsdf(j);
                 let Some(bs) = path.bsdf.sample(ul, u1, u2) else {
                     paths[j] = None;
                     continue;
@@ -333,6 +348,7 @@ impl Renderer {
                     paths[j] = None;
                 }
             }
+            depth += 1;
         }
         for s in &sums[..n] {
             acc.add(s);
@@ -583,13 +599,19 @@ mod tests {
     #[test]
     fn lockstep_packets_equal_paths_traced_one_by_one() {
         let scene = Scene::from_toml_str(SCENE).expect("scene");
-        for spp in [16, 21] {
+        for (spp, sampler) in [
+            (16, Sampler::Sobol),
+            (21, Sampler::Sobol),
+            (16, Sampler::Independent),
+            (21, Sampler::Independent),
+        ] {
             let opts = RenderOptions {
                 spp,
                 seed: 3,
                 ..Default::default()
             };
-            let r = Renderer::new(&scene, &opts).expect("renderer");
+            let mut r = Renderer::new(&scene, &opts).expect("renderer");
+            r.sampler = sampler;
             let (mut lit, mut packed) = (0, 0);
             for y in 0..r.height as usize {
                 for x in 0..r.width as usize {
@@ -599,7 +621,7 @@ mod tests {
                     for s in 0..spp as usize {
                         r.trace_packet(x, y, pixel, s, 1, &mut alone);
                     }
-                    assert!(same(&together, &alone), "pixel ({x}, {y}), spp {spp}");
+                    assert!(same(&together, &alone), "pixel ({x}, {y}), spp {spp}, {sampler:?}");
                     assert!(together.combined.is_finite());
                     lit += (together.combined.max_comp() > 0.0) as usize;
                     packed += (together.ind.iter().any(|v| v.max_comp() > 0.0)) as usize;

@@ -6,7 +6,8 @@
 //! - [`color`]: blackbody temperature → linear RGB.
 //! - [`mesh`]: triangle meshes.
 //! - [`integrator::render`]: path-trace a scene into a [`Film`] of Cycles passes (`scene` →
-//!   [`geometry`] + [`bvh`] + [`light`] + [`material`] → [`integrator`] → [`film`]).
+//!   [`geometry`] + [`bvh`] + [`light`] + [`material`] → [`integrator`] → [`film`]), its
+//!   uniform numbers from [`sampler`] (padded Owen-scrambled Sobol by default).
 //! - [`placement`]: lights placed at a pixel of the photo or from a named side of the scene.
 //! - [`reconstruct::coarse_scene`]: the coarse scene of the paper's inference from a source render.
 // Index loops over fixed-size RGB / axis arrays read like the math; `!(x > 0.0)` is the
@@ -29,6 +30,7 @@ pub mod mesh;
 pub mod placement;
 pub mod presets;
 pub mod reconstruct;
+pub mod sampler;
 pub mod sampling;
 pub mod scene;
 pub mod texture;
@@ -37,4 +39,5 @@ pub use error::{RenderError, Result};
 pub use film::Film;
 pub use integrator::{render, RenderOptions};
 pub use mesh::Mesh;
+pub use sampler::Sampler;
 pub use scene::{Camera, Color, Light, Material, Object, Scene, Shape, Transform, World};
