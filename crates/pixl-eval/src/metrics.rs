@@ -33,31 +33,34 @@ pub enum MetricError {
     NoLightChange,
 }
 
-fn check_pair(pred: &Image, gt: &Image) -> Result<(), MetricError> {
-    if (pred.width, pred.height, pred.channels) != (gt.width, gt.height, gt.channels) {
+/// `img` (called `which` in errors) has `reference`'s size, holds values and they are finite.
+pub(crate) fn check_image(img: &Image, which: &'static str, reference: &Image) -> Result<(), MetricError> {
+    if (img.width, img.height, img.channels) != (reference.width, reference.height, reference.channels) {
         return Err(MetricError::Shape {
-            pw: pred.width,
-            ph: pred.height,
-            pc: pred.channels,
-            gw: gt.width,
-            gh: gt.height,
-            gc: gt.channels,
+            pw: img.width,
+            ph: img.height,
+            pc: img.channels,
+            gw: reference.width,
+            gh: reference.height,
+            gc: reference.channels,
         });
     }
-    if gt.data.is_empty() {
+    if img.data.is_empty() {
         return Err(MetricError::Empty {
-            width: gt.width,
-            height: gt.height,
-            channels: gt.channels,
+            width: img.width,
+            height: img.height,
+            channels: img.channels,
         });
     }
-    if pred.data.iter().any(|v| !v.is_finite()) {
-        return Err(MetricError::NonFinite { which: "prediction" });
-    }
-    if gt.data.iter().any(|v| !v.is_finite()) {
-        return Err(MetricError::NonFinite { which: "ground truth" });
+    if img.data.iter().any(|v| !v.is_finite()) {
+        return Err(MetricError::NonFinite { which });
     }
     Ok(())
+}
+
+fn check_pair(pred: &Image, gt: &Image) -> Result<(), MetricError> {
+    check_image(pred, "prediction", gt)?;
+    check_image(gt, "ground truth", gt)
 }
 
 /// Per-image, per-channel least-squares scale correction (paper §4.1, after Kocsis et al. 2024):

@@ -15,7 +15,7 @@
 //!
 //! Identical relit images score gain 0 and correlation 0; relit images equal to the renders score
 //! 1 and 1. Sums are accumulated in f64.
-use crate::metrics::MetricError;
+use crate::metrics::{check_image, MetricError};
 use pixl_core::image::srgb_to_linear;
 use pixl_core::Image;
 
@@ -68,26 +68,7 @@ pub fn light_response(relit: &[&Image], renders: &[&Image]) -> Result<LightRespo
         .map(|i| ("relit image", *i))
         .chain(renders.iter().map(|i| ("render", *i)))
     {
-        if (img.width, img.height, img.channels) != (first.width, first.height, first.channels) {
-            return Err(MetricError::Shape {
-                pw: img.width,
-                ph: img.height,
-                pc: img.channels,
-                gw: first.width,
-                gh: first.height,
-                gc: first.channels,
-            });
-        }
-        if img.data.is_empty() {
-            return Err(MetricError::Empty {
-                width: img.width,
-                height: img.height,
-                channels: img.channels,
-            });
-        }
-        if img.data.iter().any(|v| !v.is_finite()) {
-            return Err(MetricError::NonFinite { which });
-        }
+        check_image(img, which, first)?;
     }
     let lo: Vec<Vec<f64>> = relit.iter().map(|i| log_luminance(i)).collect();
     let lr: Vec<Vec<f64>> = renders.iter().map(|i| log_luminance(i)).collect();
