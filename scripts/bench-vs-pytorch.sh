@@ -38,7 +38,9 @@
 #   PYTHON            a Python to use as is (torch, safetensors, numpy, openexr are installed into
 #                     it if missing); else a venv at PIXL_TORCH_VENV (default
 #                     $HOME/.cache/pixl/venv-torch) is created on first use
-#   TORCH_INDEX_URL   where pip gets torch (default the CPU wheels, https://download.pytorch.org/whl/cpu)
+#   TORCH_INDEX_URL   a package index for torch, e.g. https://download.pytorch.org/whl/cpu for the
+#                     CPU-only wheels (default: PyPI, whose wheel pulls ~3 GB of CUDA libraries but
+#                     runs on the CPU)
 #
 # Requirements: bash, python3 (>= 3.9, with venv), network access on the first run (pip), cargo
 # unless PIXL_BIN is given. Disk: two checkpoints per config (paper: 2 × 2.9 GB). Not run in CI.
@@ -88,7 +90,11 @@ if ! "$PYTHON" -c "import torch, safetensors, numpy, OpenEXR" 2>/dev/null; then
   echo "installing torch, safetensors, numpy, openexr into $("$PYTHON" -c 'import sys; print(sys.prefix)')" >&2
   "$PYTHON" -m pip install -q --upgrade pip
   "$PYTHON" -c "import torch" 2>/dev/null ||
-    "$PYTHON" -m pip install -q torch --index-url "${TORCH_INDEX_URL:-https://download.pytorch.org/whl/cpu}"
+    if [ -n "${TORCH_INDEX_URL:-}" ]; then
+      "$PYTHON" -m pip install -q torch --index-url "$TORCH_INDEX_URL"
+    else
+      "$PYTHON" -m pip install -q torch
+    fi
   "$PYTHON" -m pip install -q safetensors numpy openexr
 fi
 

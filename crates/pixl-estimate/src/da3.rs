@@ -9,8 +9,8 @@
 //! [`preprocess`] (cv2 resizes, multiple-of-14 sides, ImageNet normalisation) → [`Da3::forward`]
 //! (DINOv2 ViT, [`backbone`], then the DPT head, [`head`]; f32) → the sky rule and metric
 //! scaling ([`postprocess`]) → bilinear resize to the photo. [`resize`] holds the resamplers,
-//! [`conv`] and [`fused`] the CPU kernels (3×3 convolution, fused bias/activation/residual
-//! passes, batched attention) that keep the CPU forward parallel.
+//! [`pixl_nn::conv3x3`] and [`pixl_nn::fused`] the CPU kernels (3×3 convolution, fused
+//! bias/activation/residual passes, batched attention) that keep the CPU forward parallel.
 //!
 //! Differences from the official API, all deliberate: the network runs in f32 (the official
 //! `DepthAnything3.forward` autocasts the backbone to bf16/fp16); the sky quantile uses every
@@ -21,8 +21,6 @@
 //! tensor names ([`weights`]), f32, f16 or bf16.
 pub mod backbone;
 pub mod config;
-pub use crate::conv;
-pub use crate::fused;
 pub mod head;
 pub mod postprocess;
 pub mod preprocess;

@@ -6,13 +6,9 @@
 //!   (albedo, diffuse shading, non-diffuse residual) intrinsic decompositions.
 //! - [`hub`] — where model weights come from: `--models DIR`, the Hugging Face cache, a download.
 //! - [`resize`] — the resamplers of the official preprocessing (cv2, PyTorch).
-//! - [`conv`], [`fused`] — CPU kernels shared by the estimators: 3×3 convolution, fused
-//!   bias/activation/residual/normalisation passes, batched attention.
 //! - [`error`] — the typed error of this crate ([`EstimateError`]).
-pub mod conv;
 pub mod da3;
 pub mod error;
-pub mod fused;
 pub mod hub;
 pub mod marigold;
 pub mod resize;

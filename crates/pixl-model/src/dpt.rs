@@ -2,7 +2,7 @@
 //! turns the four trunk readouts into one dense map `F` of `C' = head.hidden` channels at full
 //! resolution.
 //!
-//! Input four `(B, d, gh, gw)` readouts and the padded image size `(H, W) = (16·gh, 16·gw)`;
+//! Input four `(B, d, gh, gw)` readouts and the padded image size `(H, W) = (p·gh, p·gw)` (`p` the patch size);
 //! output `F`: `(B, C', H, W)`, non-negative (ReLU).
 //!
 //! Steps and names (Depth Anything v2 `DPTHead`):

@@ -279,8 +279,9 @@ pub fn relight_full(
 /// from the activation shapes the config and the padded size give (`N` tokens of width `d`, `T
 /// = N + registers` in the trunk, `h` heads, feature maps of the DPT head at strides `p/4 … 2`
 /// and at full size), plus what stays alive across stages: the weights, the inputs, the RoPE
-/// tables, kept readouts. Dominant terms: the attention scores and their softmax, `2·h·T²`
-/// elements per block, and the head's last two full-resolution convolutions, `(C/2 + 2C')·H·W`.
+/// tables, kept readouts. Dominant terms: in bf16 the attention scores and their softmax, `2·h·T²`
+/// elements per block (in f32 the fused attention kernel holds only one block of query rows'
+/// scores per thread), and the head's last two full-resolution convolutions, `(C/2 + 2C')·H·W`.
 /// The buffers candle's kernels use inside one op are counted: the channels-last copy of a
 /// convolution's input, one im2col tile per thread, the bias added after a matmul, and per
 /// thread [`KERNEL_WORKSPACE_PER_THREAD`] and [`KERNEL_SCRATCH_PER_THREAD`] for the kernels'
@@ -324,7 +325,7 @@ pub const KERNEL_WORKSPACE_PER_THREAD: u64 = 4 << 20;
 /// 0.3–0.5 MB with two threads), allowed at every stage.
 pub const KERNEL_SCRATCH_PER_THREAD: u64 = 512 << 10;
 /// Output pixels per im2col tile of candle's CPU convolution (one tile per thread in flight).
-const CONV_TILE: u64 = 512;
+const CONV_TILE: u64 = crate::layers::CONV_TILE as u64;
 
 /// The bytes [`relight_full`] / [`gain_bias_staged`] hold at their peak for a `width × height`
 /// working image with the network `cfg` in `dtype` (see [`MemoryPlan`]), with as many
@@ -365,13 +366,27 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
         12 * px * s
     };
     let rope = 2 * n * u(cfg.trunk_head_dim()) * f;
-    let base = weights + inputs + prepared + rope + threads * (KERNEL_WORKSPACE_PER_THREAD + KERNEL_SCRATCH_PER_THREAD);
+    // f32 attention runs in the fused kernel, whose per-thread block of scores is kept like the
+    // matrix kernels' workspace (sized for the longest sequence, the trunk's).
+    let attention_scratch = if dtype == DType::F32 {
+        f * u(pixl_nn::attention::fused_scratch_floats(t as usize))
+    } else {
+        0
+    };
+    let base = weights
+        + inputs
+        + prepared
+        + rope
+        + threads * (KERNEL_WORKSPACE_PER_THREAD + KERNEL_SCRATCH_PER_THREAD + attention_scratch);
 
     // One transformer block over `k` tokens with `heads` heads and MLP ratio `r`:
-    // attention: input, norm, qkv, q, k, v, scores, softmax, output (+ 5 token maps of RoPE
-    // temporaries in the trunk); MLP: input, residual, norm, fc1, GELU, fc2 and its bias.
-    let attention =
-        |k: u64, heads: u64, rope: bool| s * (9 * k * d + 2 * heads * k * k + if rope { 5 * k * d } else { 0 });
+    // attention: input, norm, qkv, q, k, v, scores (bf16: scores and softmax of all heads; f32:
+    // the fused kernel's blocks, in `base`), output (+ 5 token maps of RoPE temporaries in the
+    // trunk); MLP: input, residual, norm, fc1, GELU, fc2 and its bias.
+    let attention = |k: u64, heads: u64, rope: bool| {
+        let scores = if dtype == DType::F32 { 0 } else { s * 2 * heads * k * k };
+        s * (9 * k * d + if rope { 5 * k * d } else { 0 }) + scores
+    };
     let mlp = |k: u64, r: u64| s * k * d * (5 + 2 * r);
     let v = &cfg.src_encoder;
     let patch_embed = cs * (3 * px + 2 * n * d) + tiles(3, d, u(p), n);

@@ -17,6 +17,7 @@ use crate::config::Config;
 use crate::layers::{conv2d, Conv};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2dConfig, Linear, VarBuilder};
+use pixl_nn::fused::{self, Act};
 use pixl_nn::{LayerNorm, Mlp, Rope2d};
 
 /// Rotary embedding for the patch tokens of a sequence whose first `prefix` tokens (registers)
@@ -57,9 +58,7 @@ impl Attention {
     pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
         let (b, n, c) = xs.dims3()?;
         let hd = c / self.heads;
-        let qkv = self
-            .qkv
-            .forward(xs)?
+        let qkv = fused::linear(xs, &self.qkv, Act::None)?
             .reshape((b, n, 3, self.heads, hd))?
             .permute((2, 0, 3, 1, 4))?;
         let (mut q, mut k) = (qkv.get(0)?.contiguous()?, qkv.get(1)?.contiguous()?);
@@ -70,7 +69,7 @@ impl Attention {
         }
         let out = pixl_nn::attention(&q, &k, &v)?; // (B, heads, N, hd)
         let out = out.transpose(1, 2)?.reshape((b, n, c))?;
-        self.proj.forward(&out)
+        fused::linear(&out, &self.proj, Act::None)
     }
 }
 
@@ -94,8 +93,8 @@ impl Block {
     }
 
     pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
-        let xs = (xs + self.attn.forward(&self.norm1.forward(xs)?, rope)?)?;
-        &xs + self.mlp.forward(&self.norm2.forward(&xs)?)?
+        let xs = fused::residual(xs, &self.attn.forward(&self.norm1.forward(xs)?, rope)?)?;
+        fused::residual(&xs, &self.mlp.forward(&self.norm2.forward(&xs)?)?)
     }
 }
 

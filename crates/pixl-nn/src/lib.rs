@@ -11,12 +11,20 @@
 //! - [`ops`] — softmax, bilinear resize, GELU.
 //! - [`rope`] — 2D rotary position embedding.
 //! - [`mlp`] — Linear–GELU–Linear.
+//! - [`conv3x3`] — 3×3 convolution as banded im2col + one matrix product, for inference.
 //! - [`dwconv`] — depthwise k×k convolution with its own forward and backward kernels.
-//! - [`attention`] — multi-head scaled-dot-product attention.
+//! - [`attention`] — multi-head scaled-dot-product attention (a fused, blocked CPU kernel for
+//!   inference).
+//! - [`fastmath`] — vectorisable `exp` and row softmax for the CPU kernels.
+//! - [`fused`] — parallel fused bias/activation/residual/norm passes and a fused `Linear`, for
+//!   inference only (the model layers call them when no gradient is needed).
 //! - [`testing`] — seeded test tensors and an f64 finite-difference gradient check.
 pub mod attention;
 pub mod backbones;
+pub mod conv3x3;
 pub mod dwconv;
+pub mod fastmath;
+pub mod fused;
 pub mod mlp;
 pub mod norm;
 pub mod ops;

@@ -1,4 +1,7 @@
 //! `Linear(in → hidden) – GELU – Linear(hidden → out)`, weights `fc1.*`, `fc2.*` (timm naming).
+//! Each linear goes through [`crate::fused::linear`]: with no gradient needed on the CPU, the
+//! bias and the GELU are one parallel pass after the matmul.
+use crate::fused::{self, Act};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
 
@@ -19,6 +22,7 @@ impl Mlp {
 
 impl Module for Mlp {
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        self.fc2.forward(&crate::ops::gelu(&self.fc1.forward(xs)?)?)
+        let hidden = fused::linear(xs, &self.fc1, Act::Gelu)?;
+        fused::linear(&hidden, &self.fc2, Act::None)
     }
 }

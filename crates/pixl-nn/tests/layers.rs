@@ -353,6 +353,29 @@ fn attention_matches_naive_and_gradients() -> Result<()> {
     assert_gradients("attention", |t| attention(&t[0], &t[1], &t[2]), &[q, k, v], TOL)
 }
 
+/// The fused CPU kernel on shapes that span several query blocks with a partial last block
+/// (1100 keys → 119 rows per block; 300 queries → 3 blocks), non-contiguous inputs, and scores
+/// large enough that an unshifted softmax would overflow.
+#[test]
+fn fused_attention_blocks_match_naive() -> Result<()> {
+    let q = (uniform((1, 2, 300, 16), -1.0, 1.0, 40, &cpu())? * 12.0)?;
+    let k = uniform((1, 2, 16, 1100), -1.0, 1.0, 41, &cpu())?.transpose(2, 3)?;
+    let v = uniform((1, 2, 1100, 8), -1.0, 1.0, 42, &cpu())?;
+    assert!(!k.is_contiguous());
+    let want = naive_attention(&q, &k.contiguous()?, &v)?;
+    let f = |t: &Tensor| t.to_dtype(DType::F32);
+    let got = attention(&f(&q)?, &f(&k)?, &f(&v)?)?;
+    assert_eq!(got.dims(), &[1, 2, 300, 8]);
+    let err = max_diff(&got.flatten_all()?.to_dtype(DType::F64)?.to_vec1::<f64>()?, &want);
+    assert!(err < 2e-5, "fused attention error {err}");
+    // The unfused f32 path agrees to the same order.
+    let slow = attention(&tracked(&f(&q)?)?, &f(&k)?, &f(&v)?)?;
+    assert!(max_abs_diff(&got, &slow)? < 2e-5);
+    // Mismatched shapes are an error, not a panic.
+    assert!(attention(&f(&q)?, &f(&k.narrow(2, 0, 1000)?)?, &f(&v)?).is_err());
+    Ok(())
+}
+
 #[test]
 fn mlp_gradients_and_value() -> Result<()> {
     let (i, hdim, o) = (3, 5, 2);

@@ -180,7 +180,7 @@ fn bench_model(args: ModelArgs, ctx: &Ctx) -> anyhow::Result<()> {
         let out = serde_json::json!({
             "config": args.config, "params": cfg.param_count(), "width": w, "height": h,
             "dtype": format!("{:?}", args.dtype).to_lowercase(), "device": args.run.device,
-            "threads": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+            "threads": candle_core::utils::get_num_threads(),
             "timing": timing,
         });
         ctx.print_json(&out)?;

@@ -20,10 +20,10 @@
 //!
 //! Blocks after the last out layer do not change the outputs; they are not evaluated.
 use super::config::Da3Config;
-use super::fused::{add_scaled_rows, attention_qkv, bias_act_rows, Act, Vector};
 use super::resize::bicubic_scale;
 use candle_core::{DType, Module, Result, Tensor};
 use candle_nn::VarBuilder;
+use pixl_nn::fused::{add_scaled_rows, attention_qkv, bias_act_rows, Act, Vector};
 use pixl_nn::LayerNorm;
 
 /// LayerNorm eps of the blocks (`Block(ln_eps=1e-6)`).

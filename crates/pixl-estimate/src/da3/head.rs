@@ -21,11 +21,11 @@
 //! The two final 3×3 convs read the same map and are evaluated as one 64-channel conv (their
 //! weights concatenated at load time), the two 1×1 convs as one block-diagonal matmul.
 use super::config::Da3Config;
-use super::fused::{self, bias_act_channels, bias_act_rows, Act, Vector};
 use super::resize::bilinear_align_corners;
-use crate::conv::Conv3x3;
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
+use pixl_nn::conv3x3::Conv3x3;
+use pixl_nn::fused::{self, bias_act_channels, bias_act_rows, Act, Vector};
 
 /// A 1×1 conv as a matrix product: weight `(out, in)`, bias `(out)`.
 #[derive(Clone, Debug)]

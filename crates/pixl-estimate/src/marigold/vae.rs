@@ -17,10 +17,10 @@
 //! conv_out}`; the attention's `group_norm`, `to_q`, `to_k`, `to_v`, `to_out.0` (or the old
 //! `query`, `key`, `value`, `proj_attn`). Scaling by `scaling_factor` is the caller's.
 use super::config::VaeConfig;
-use crate::conv::Conv3x3;
-use crate::fused::{group_norm_act, Act, Vector};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{self as nn, VarBuilder};
+use pixl_nn::conv3x3::Conv3x3;
+use pixl_nn::fused::{group_norm_act, Act, Vector};
 
 /// GroupNorm epsilon of the SD VAE (hard-coded in diffusers' `Encoder`/`Decoder`).
 const EPS: f64 = 1e-6;

@@ -1,5 +1,5 @@
-//! 3×3 convolution (padding 1, stride 1 or 2) for the estimators' convolutional parts (DA3's
-//! DPT head, Marigold's VAE) on the CPU, and [`Conv3x3`], the layer that uses it: the input is copied
+//! 3×3 convolution (padding 1, stride 1 or 2) for inference on the CPU (the relighting network's
+//! DPT head, DA3's DPT head, Marigold's VAE), and [`Conv3x3`], the layer that uses it: the input is copied
 //! once into a zero-padded channels-last buffer, each band of output rows is unrolled into an
 //! im2col matrix by contiguous copies of `C` floats, multiplied by the weights with one large
 //! (internally parallel) matrix product, and written back channels-first with the bias, a
@@ -9,7 +9,7 @@
 //! `(O, C, 3, 3)`, `out[o, y, x] = b[o] + Σ_{c,ky,kx} w[o, c, ky, kx]·in[c, s·y + ky − 1,
 //! s·x + kx − 1]` (zero outside), output `(B, O, ⌊(H − 1)/s⌋ + 1, ⌊(W − 1)/s⌋ + 1)`.
 use crate::fused::{self, bias_act_channels, bias_residual_channels, Act, Vector};
-use candle_core::{DType, Module, Result, Tensor};
+use candle_core::{CpuStorage, Layout, Module, Result, Storage, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use rayon::prelude::*;
 
@@ -42,15 +42,40 @@ pub struct Epilogue<'a> {
     pub act: Act,
 }
 
-/// `(B, C, H, W)` f32 CPU tensor → `(B, O, H', W')`.
+/// The f32 values of a contiguous CPU tensor's storage, borrowed.
+fn cpu_f32_slice<'a>(storage: &'a Storage, layout: &Layout) -> Result<&'a [f32]> {
+    let Storage::Cpu(CpuStorage::F32(v)) = storage else {
+        candle_core::bail!("3x3 convolution: expected an f32 CPU tensor");
+    };
+    match layout.contiguous_offsets() {
+        Some((a, b)) => Ok(&v[a..b]),
+        None => candle_core::bail!("3x3 convolution: expected a contiguous tensor"),
+    }
+}
+
+/// `(B, C, H, W)` f32 CPU tensor → `(B, O, H', W')`, im2col bands of up to 8 Mi floats.
 pub fn conv3x3(xs: &Tensor, w: &Im2colWeight, stride: usize, epi: &Epilogue) -> Result<Tensor> {
+    conv3x3_banded(xs, w, stride, epi, BAND_FLOATS)
+}
+
+/// [`conv3x3`] with im2col bands of at most `band_floats` floats (whole output rows, at least
+/// one): smaller bands hold less memory, larger ones give the matrix product more work per call.
+pub fn conv3x3_banded(
+    xs: &Tensor,
+    w: &Im2colWeight,
+    stride: usize,
+    epi: &Epilogue,
+    band_floats: usize,
+) -> Result<Tensor> {
     let (b, c, h, wd) = xs.dims4()?;
     if c != w.cin {
         candle_core::bail!("3x3 convolution expects {} input channels, got {c}", w.cin);
     }
     let o = w.matrix.dim(0)?;
     let (ho, wo) = ((h - 1) / stride + 1, (wd - 1) / stride + 1);
-    let src = xs.contiguous()?.flatten_all()?.to_vec1::<f32>()?;
+    let xs = xs.contiguous()?;
+    let (storage, layout) = xs.storage_and_layout();
+    let src = cpu_f32_slice(&storage, layout)?;
     let mut out = vec![0f32; b * o * ho * wo];
     if let Some(r) = epi.residual {
         if r.len() != out.len() {
@@ -59,8 +84,8 @@ pub fn conv3x3(xs: &Tensor, w: &Im2colWeight, stride: usize, epi: &Epilogue) -> 
     }
     let (ph, pw) = (h + 2, wd + 2);
     let k = 9 * c;
-    // Output rows per band: as many as fit BAND_FLOATS, at least one.
-    let band_rows = (BAND_FLOATS / (k * wo)).clamp(1, ho);
+    // Output rows per band: as many as fit `band_floats`, at least one.
+    let band_rows = (band_floats / (k * wo).max(1)).clamp(1, ho.max(1));
     for bi in 0..b {
         // Zero-padded channels-last copy of this image: padded[(y, x, c)].
         let mut padded = vec![0f32; ph * pw * c];
@@ -93,8 +118,10 @@ pub fn conv3x3(xs: &Tensor, w: &Im2colWeight, stride: usize, epi: &Epilogue) -> 
                 }
             });
             let cols = Tensor::from_vec(cols, (t, k), xs.device())?;
-            let res = w.matrix.matmul(&cols.t()?)?; // (O, t)
-            let res = res.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
+            let res = w.matrix.matmul(&cols.t()?)?.contiguous()?; // (O, t)
+            drop(cols);
+            let (res_storage, res_layout) = res.storage_and_layout();
+            let res = cpu_f32_slice(&res_storage, res_layout)?;
             let start = y0 * wo;
             dst.par_chunks_mut(ho * wo).enumerate().for_each(|(oc, plane)| {
                 let bias = epi.bias.map_or(0.0, |bv| bv[oc]);
@@ -216,6 +243,20 @@ mod tests {
             };
             let got = conv3x3(&xs, &Im2colWeight::new(&wt).unwrap(), stride, &epi).unwrap();
             assert_eq!(got.dims(), want.dims());
+            // One output row per band gives the same values.
+            let banded = conv3x3_banded(&xs, &Im2colWeight::new(&wt).unwrap(), stride, &epi, 1).unwrap();
+            let gap = (&got - banded)
+                .unwrap()
+                .abs()
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .max(0)
+                .unwrap();
+            assert!(
+                gap.to_scalar::<f32>().unwrap() < 1e-5,
+                "banded, stride {stride} {h}x{w}"
+            );
             let err = (got - want)
                 .unwrap()
                 .abs()

@@ -1,4 +1,5 @@
-//! Fused elementwise steps of the estimators' networks (DA3, Marigold's VAE), parallel on the CPU.
+//! Fused elementwise steps for inference (the relighting network, DA3, Marigold's VAE), parallel
+//! on the CPU, without a backward pass: callers take them only when no gradient is needed.
 //!
 //! candle's CPU elementwise kernels run on one thread, and every bias add, GELU, ReLU, LayerScale
 //! and residual add would be a separate pass over memory. These ops do each step in one
@@ -7,7 +8,7 @@
 //! back to the equivalent candle ops.
 //!
 //! Also [`attention_qkv`]: multi-head attention straight from fused qkv rows, with the head
-//! split (and the `1/√D` scale on q) and the head merge done as single parallel copies.
+//! split and the head merge done as single parallel copies.
 //!
 //! Layouts: "rows" tensors are `(…, N)` with a per-column vector of length `N`; "channels"
 //! tensors are `(B, C, …)` with a per-channel vector of length `C`.
@@ -27,7 +28,7 @@ pub enum Act {
 
 impl Act {
     #[inline]
-    pub(crate) fn apply(self, v: f32) -> f32 {
+    pub fn apply(self, v: f32) -> f32 {
         match self {
             Act::None => v,
             Act::Gelu => (candle_core::cpu::erf::erf_f32(v * std::f32::consts::FRAC_1_SQRT_2) + 1.0) * 0.5 * v,
@@ -49,7 +50,7 @@ impl Act {
 /// Elements per parallel task.
 const CHUNK: usize = 1 << 14;
 
-pub(crate) fn cpu_f32(xs: &Tensor) -> bool {
+pub fn cpu_f32(xs: &Tensor) -> bool {
     xs.device().is_cpu() && xs.dtype() == DType::F32
 }
 
@@ -127,7 +128,7 @@ struct VecAct {
 
 impl CustomOp1 for VecAct {
     fn name(&self) -> &'static str {
-        "da3-bias-act"
+        "pixl-bias-act"
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
@@ -152,7 +153,7 @@ struct AddScaled {
 
 impl CustomOp2 for AddScaled {
     fn name(&self) -> &'static str {
-        "da3-add-scaled"
+        "pixl-add-scaled"
     }
 
     fn cpu_fwd(&self, s1: &CpuStorage, l1: &Layout, s2: &CpuStorage, l2: &Layout) -> Result<(CpuStorage, Shape)> {
@@ -187,7 +188,7 @@ struct BiasAdd {
 
 impl CustomOp2 for BiasAdd {
     fn name(&self) -> &'static str {
-        "da3-bias-add"
+        "pixl-bias-add"
     }
 
     fn cpu_fwd(&self, s1: &CpuStorage, l1: &Layout, s2: &CpuStorage, l2: &Layout) -> Result<(CpuStorage, Shape)> {
@@ -371,6 +372,40 @@ pub fn add_act(xs: &Tensor, ys: &Tensor, act: Act) -> Result<Tensor> {
     xs.contiguous()?.apply_op2_no_bwd(&ys.contiguous()?, &op)
 }
 
+/// `act(xs · Wᵀ + b)` for a candle `Linear` over the last dim of `xs`, on any number of leading
+/// dims. With no gradient needed, on the CPU in f32: one matmul over all rows, then the bias and
+/// activation in one parallel pass ([`bias_act_rows`]). Otherwise (training, other devices or
+/// dtypes): candle's `Linear`, then the activation, differentiable.
+pub fn linear(xs: &Tensor, layer: &candle_nn::Linear, act: Act) -> Result<Tensor> {
+    let (w, b) = (layer.weight(), layer.bias());
+    let grad = crate::needs_grad(&[xs, w]) || b.is_some_and(|b| b.track_op());
+    if grad || !cpu_f32(xs) || !cpu_f32(w) {
+        return act.apply_tensor(candle_core::Module::forward(layer, xs)?);
+    }
+    let dims = xs.dims();
+    let Some((&k, lead)) = dims.split_last() else {
+        candle_core::bail!("linear: a scalar input");
+    };
+    let rows: usize = lead.iter().product();
+    let ys = xs.contiguous()?.reshape((rows, k))?.matmul(&w.t()?)?;
+    let ys = match b {
+        Some(b) => bias_act_rows(&ys, &Vector::new(b.clone())?, act)?,
+        None => act.apply_tensor(ys)?,
+    };
+    let mut out_dims = lead.to_vec();
+    out_dims.push(ys.dim(1)?);
+    ys.reshape(out_dims)
+}
+
+/// `xs + ys` (a residual connection): [`add_act`]'s parallel pass when no gradient is needed,
+/// candle's differentiable add otherwise.
+pub fn residual(xs: &Tensor, ys: &Tensor) -> Result<Tensor> {
+    if crate::needs_grad(&[xs, ys]) || xs.dims() != ys.dims() {
+        return xs + ys;
+    }
+    add_act(xs, ys, Act::None)
+}
+
 /// `relu(xs)`, parallel.
 pub fn relu(xs: &Tensor) -> Result<Tensor> {
     if !cpu_f32(xs) {
@@ -385,16 +420,14 @@ pub fn relu(xs: &Tensor) -> Result<Tensor> {
     xs.contiguous()?.apply_op1_no_bwd(&op)
 }
 
-/// `(B, N, 3·H·D)` fused qkv rows → `(3, B, H, N, D)` contiguous, with q multiplied by
-/// `q_scale` (the attention scale folded into the copy).
+/// `(B, N, 3·H·D)` fused qkv rows → `(3, B, H, N, D)` contiguous.
 struct SplitHeads {
     heads: usize,
-    q_scale: f32,
 }
 
 impl CustomOp1 for SplitHeads {
     fn name(&self) -> &'static str {
-        "da3-split-heads"
+        "pixl-split-heads"
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
@@ -410,12 +443,7 @@ impl CustomOp1 for SplitHeads {
             let bb = (r / (n * h)) % b;
             let which = r / (n * h * b);
             let off = (bb * n + t) * c3 + (which * h + hh) * d;
-            let row = &src[off..off + d];
-            if which == 0 {
-                dst.iter_mut().zip(row).for_each(|(o, &v)| *o = v * self.q_scale);
-            } else {
-                dst.copy_from_slice(row);
-            }
+            dst.copy_from_slice(&src[off..off + d]);
         });
         Ok((CpuStorage::F32(out), Shape::from((3, b, h, n, d))))
     }
@@ -426,7 +454,7 @@ struct MergeHeads;
 
 impl CustomOp1 for MergeHeads {
     fn name(&self) -> &'static str {
-        "da3-merge-heads"
+        "pixl-merge-heads"
     }
 
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
@@ -445,30 +473,26 @@ impl CustomOp1 for MergeHeads {
 }
 
 /// Multi-head softmax attention on fused qkv rows `(B, N, 3·C)` (q, k, v, each `heads` heads):
-/// `softmax(q·kᵀ/√D)·v`, heads batched, output `(B, N, C)` with the heads concatenated.
+/// `softmax(q·kᵀ/√D)·v` by [`crate::attention`] (its fused blocked kernel on the CPU), output
+/// `(B, N, C)` with the heads concatenated.
 pub fn attention_qkv(qkv: &Tensor, heads: usize) -> Result<Tensor> {
     let (b, n, c3) = qkv.dims3()?;
     if c3 % (3 * heads) != 0 {
         candle_core::bail!("qkv width {c3} is not 3 × {heads} heads");
     }
     let d = c3 / (3 * heads);
-    let scale = 1.0 / (d as f64).sqrt();
     let (q, k, v) = if cpu_f32(qkv) {
-        let t = qkv.contiguous()?.apply_op1_no_bwd(&SplitHeads {
-            heads,
-            q_scale: scale as f32,
-        })?;
+        let t = qkv.contiguous()?.apply_op1_no_bwd(&SplitHeads { heads })?;
         (t.get(0)?, t.get(1)?, t.get(2)?)
     } else {
         let t = qkv.reshape((b, n, 3, heads, d))?.permute((2, 0, 3, 1, 4))?;
         (
-            (t.get(0)? * scale)?.contiguous()?,
+            t.get(0)?.contiguous()?,
             t.get(1)?.contiguous()?,
             t.get(2)?.contiguous()?,
         )
     };
-    let att = candle_nn::ops::softmax_last_dim(&q.matmul(&k.t()?)?)?;
-    let out = att.matmul(&v)?; // (B, H, N, D)
+    let out = crate::attention(&q, &k, &v)?; // (B, H, N, D)
     if cpu_f32(&out) {
         out.apply_op1_no_bwd(&MergeHeads)
     } else {
@@ -530,7 +554,7 @@ mod tests {
         let qkv = Tensor::randn(0f32, 1.0, (2, 9, 3 * 4 * 5), &dev).unwrap();
         let t = qkv.reshape((2, 9, 3, 4, 5)).unwrap().permute((2, 0, 3, 1, 4)).unwrap();
         let g = |i| t.get(i).unwrap().contiguous().unwrap();
-        let want = pixl_nn::attention(&g(0), &g(1), &g(2))
+        let want = crate::attention(&g(0), &g(1), &g(2))
             .unwrap()
             .transpose(1, 2)
             .unwrap()
