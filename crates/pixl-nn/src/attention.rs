@@ -12,6 +12,7 @@
 //!   ([`crate::fastmath`]), `O = S · v` by a second GEMM, then each row divided by its sum.
 //!   Heads × blocks run in parallel on rayon's pool. Differs from the candle path only by
 //!   rounding (tested against an f64 computation).
+use crate::fused::slice;
 use candle_core::{CpuStorage, CustomOp3, DType, Device, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::cell::RefCell;
@@ -54,16 +55,6 @@ thread_local! {
     static SCRATCH: RefCell<(Vec<f32>, Vec<f32>)> = const { RefCell::new((Vec::new(), Vec::new())) };
 }
 
-fn f32_slice<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32]> {
-    let CpuStorage::F32(data) = s else {
-        candle_core::bail!("attention: {what} is not f32");
-    };
-    match l.contiguous_offsets() {
-        Some((a, b)) => Ok(&data[a..b]),
-        None => candle_core::bail!("attention: {what} is not contiguous"),
-    }
-}
-
 impl CustomOp3 for FusedAttention {
     fn name(&self) -> &'static str {
         "pixl-fused-attention"
@@ -90,9 +81,9 @@ impl CustomOp3 for FusedAttention {
             );
         }
         let (q, k, v) = (
-            f32_slice(sq, lq, "q")?,
-            f32_slice(sk, lk, "k")?,
-            f32_slice(sv, lv, "v")?,
+            slice(sq, lq, "attention q")?,
+            slice(sk, lk, "attention k")?,
+            slice(sv, lv, "attention v")?,
         );
         let mut out = vec![0f32; b * h * n * dv];
         if out.is_empty() {

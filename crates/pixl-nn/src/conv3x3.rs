@@ -9,7 +9,7 @@
 //! `(O, C, 3, 3)`, `out[o, y, x] = b[o] + Σ_{c,ky,kx} w[o, c, ky, kx]·in[c, s·y + ky − 1,
 //! s·x + kx − 1]` (zero outside), output `(B, O, ⌊(H − 1)/s⌋ + 1, ⌊(W − 1)/s⌋ + 1)`.
 use crate::fused::{self, bias_act_channels, bias_residual_channels, Act, Vector};
-use candle_core::{CpuStorage, Layout, Module, Result, Storage, Tensor};
+use candle_core::{Layout, Module, Result, Storage, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use rayon::prelude::*;
 
@@ -44,13 +44,10 @@ pub struct Epilogue<'a> {
 
 /// The f32 values of a contiguous CPU tensor's storage, borrowed.
 fn cpu_f32_slice<'a>(storage: &'a Storage, layout: &Layout) -> Result<&'a [f32]> {
-    let Storage::Cpu(CpuStorage::F32(v)) = storage else {
-        candle_core::bail!("3x3 convolution: expected an f32 CPU tensor");
+    let Storage::Cpu(cpu) = storage else {
+        candle_core::bail!("3x3 convolution: expected a CPU tensor");
     };
-    match layout.contiguous_offsets() {
-        Some((a, b)) => Ok(&v[a..b]),
-        None => candle_core::bail!("3x3 convolution: expected a contiguous tensor"),
-    }
+    fused::slice(cpu, layout, "3x3 convolution")
 }
 
 /// `(B, C, H, W)` f32 CPU tensor → `(B, O, H', W')`, im2col bands of up to 8 Mi floats.
@@ -241,31 +238,25 @@ mod tests {
                 residual: Some(&sv),
                 act: Act::Relu,
             };
-            let got = conv3x3(&xs, &Im2colWeight::new(&wt).unwrap(), stride, &epi).unwrap();
+            let im2col = Im2colWeight::new(&wt).unwrap();
+            let got = conv3x3(&xs, &im2col, stride, &epi).unwrap();
             assert_eq!(got.dims(), want.dims());
+            let max_abs = |a: &Tensor, b: &Tensor| -> f32 {
+                (a - b)
+                    .unwrap()
+                    .abs()
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .max(0)
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap()
+            };
+            assert!(max_abs(&got, &want) < 1e-4, "stride {stride} {h}x{w}");
             // One output row per band gives the same values.
-            let banded = conv3x3_banded(&xs, &Im2colWeight::new(&wt).unwrap(), stride, &epi, 1).unwrap();
-            let gap = (&got - banded)
-                .unwrap()
-                .abs()
-                .unwrap()
-                .flatten_all()
-                .unwrap()
-                .max(0)
-                .unwrap();
-            assert!(
-                gap.to_scalar::<f32>().unwrap() < 1e-5,
-                "banded, stride {stride} {h}x{w}"
-            );
-            let err = (got - want)
-                .unwrap()
-                .abs()
-                .unwrap()
-                .flatten_all()
-                .unwrap()
-                .max(0)
-                .unwrap();
-            assert!(err.to_scalar::<f32>().unwrap() < 1e-4, "stride {stride} {h}x{w}");
+            let banded = conv3x3_banded(&xs, &im2col, stride, &epi, 1).unwrap();
+            assert!(max_abs(&got, &banded) < 1e-5, "banded, stride {stride} {h}x{w}");
         }
     }
 }

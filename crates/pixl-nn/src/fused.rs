@@ -54,7 +54,9 @@ pub fn cpu_f32(xs: &Tensor) -> bool {
     xs.device().is_cpu() && xs.dtype() == DType::F32
 }
 
-fn slice<'a>(storage: &'a CpuStorage, layout: &Layout, what: &str) -> Result<&'a [f32]> {
+/// The f32 values of a contiguous CPU storage under `layout`, borrowed; `what` names the
+/// operand in the error otherwise.
+pub(crate) fn slice<'a>(storage: &'a CpuStorage, layout: &Layout, what: &str) -> Result<&'a [f32]> {
     let CpuStorage::F32(v) = storage else {
         candle_core::bail!("{what}: expected f32");
     };
