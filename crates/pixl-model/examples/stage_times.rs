@@ -1,6 +1,8 @@
 //! Wall time of each stage of the network's forward pass on the CPU (random weights and inputs):
 //! the source encoder blocks, the intrinsics encoder, the trunk blocks and the head, summed by
-//! kind over 3 runs after a warm-up. Where the time goes, for optimisation work.
+//! kind over 3 runs after a warm-up; then the same time by operation kind
+//! ([`pixl_nn::profile`]), the rest being what ran outside the instrumented ops. Where the
+//! time goes, for optimisation work.
 //!
 //! `cargo run --release -p pixl-model --example stage_times -- small 512` (threads:
 //! `RAYON_NUM_THREADS`).
@@ -23,6 +25,7 @@ fn main() -> Result<()> {
     let ct = Tensor::rand(0f32, 1.0, (1, 9, side, side), &dev)?;
     let mut totals: BTreeMap<String, f64> = BTreeMap::new();
     for run in 0..4 {
+        pixl_nn::profile::enable(run > 0);
         let mut last = Instant::now();
         let mut record = |_: usize, _: usize, stage: &str| {
             let kind = stage
@@ -38,10 +41,32 @@ fn main() -> Result<()> {
         };
         gain_bias_staged(&model, &src, &ct, &mut record)?;
     }
+    pixl_nn::profile::enable(false);
     let all: f64 = totals.values().sum();
     println!("{preset} {side}x{side}: {:.0} ms per forward", all * 1e3);
     for (kind, t) in &totals {
         println!("  {kind:<40} {:>8.1} ms  {:>5.1} %", t * 1e3, 100.0 * t / all);
     }
+    println!("by operation kind:");
+    let mut ops = pixl_nn::profile::take();
+    ops.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let mut listed = 0.0;
+    for (kind, t, calls) in &ops {
+        let t = t / 3.0;
+        listed += t;
+        println!(
+            "  {kind:<40} {:>8.1} ms  {:>5.1} %  ({} calls)",
+            t * 1e3,
+            100.0 * t / all,
+            calls / 3
+        );
+    }
+    let rest = all - listed;
+    println!(
+        "  {:<40} {:>8.1} ms  {:>5.1} %",
+        "other",
+        rest * 1e3,
+        100.0 * rest / all
+    );
     Ok(())
 }

@@ -20,6 +20,7 @@ use crate::config::Config;
 use crate::layers::{conv2d, Conv};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2dConfig, Linear, VarBuilder};
+use pixl_nn::fused;
 use pixl_nn::{DepthwiseConv2d, LayerNorm, LayerNorm2d, Mlp};
 
 /// ConvNeXt block: `x + gamma ⊙ mlp(norm(dwconv7(x)))` (channels-last inside).
@@ -59,11 +60,9 @@ fn conv_dw_any_size(conv: &DepthwiseConv2d, xs: &Tensor) -> Result<Tensor> {
 
 impl Module for ConvNextBlock {
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let ys = conv_dw_any_size(&self.conv_dw, xs)?
-            .permute((0, 2, 3, 1))?
-            .contiguous()?;
-        let ys = self.mlp.forward(&self.norm.forward(&ys)?)?.broadcast_mul(&self.gamma)?;
-        xs + ys.permute((0, 3, 1, 2))?
+        let ys = fused::to_channels_last(&conv_dw_any_size(&self.conv_dw, xs)?)?;
+        let ys = self.mlp.forward(&self.norm.forward(&ys)?)?;
+        fused::add_scaled_channels_last(xs, &ys, &self.gamma)
     }
 }
 

@@ -28,6 +28,7 @@ use crate::config::Config;
 use crate::layers::{conv2d, conv2d_no_bias, Conv};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2dConfig, VarBuilder};
+use pixl_nn::fused::Act;
 use pixl_nn::ops::resize_bilinear;
 
 /// `nn.ConvTranspose2d(cin, cout, k, stride=k)`: weight `(cin, cout, k, k)`, bias `(cout)`.
@@ -49,6 +50,7 @@ impl ConvTransposeK {
 
 impl Module for ConvTransposeK {
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let _t = pixl_nn::profile::span("transposed conv");
         let (b, cin, h, w) = xs.dims4()?;
         let (_, cout, k, _) = self.weight.dims4()?;
         let rows = xs.permute((0, 2, 3, 1))?.reshape((b * h * w, cin))?;
@@ -98,9 +100,10 @@ impl ResidualConvUnit {
 }
 
 impl Module for ResidualConvUnit {
+    /// Two convolutions: the ReLUs and the skip connection ride inside them ([`Conv::forward_fused`]).
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let ys = self.conv2.forward(&self.conv1.forward(&xs.relu()?)?.relu()?)?;
-        xs + ys
+        let ys = self.conv1.forward_fused(xs, true, None, Act::Relu)?;
+        self.conv2.forward_fused(&ys, false, Some(xs), Act::None)
     }
 }
 
@@ -216,7 +219,7 @@ impl DptHead {
         let path = self.refinenets[0].forward(&path, Some(&layers[0]), (2 * h1, 2 * w1))?;
         let out = self.output_conv1.forward(&path)?;
         let out = resize_bilinear(&out, h, w)?;
-        self.output_conv2.forward(&out)?.relu()
+        self.output_conv2.forward_fused(&out, false, None, Act::Relu)
     }
 }
 

@@ -20,6 +20,7 @@ use crate::config::Config;
 use crate::model::PixlRelight;
 use candle_core::{DType, Device, Tensor};
 use pixl_core::Image;
+use pixl_nn::conv3x3::{self, tile_pixels};
 
 /// A request this module cannot serve.
 #[derive(Debug, thiserror::Error)]
@@ -325,7 +326,7 @@ pub const KERNEL_WORKSPACE_PER_THREAD: u64 = 4 << 20;
 /// 0.3–0.5 MB with two threads), allowed at every stage.
 pub const KERNEL_SCRATCH_PER_THREAD: u64 = 512 << 10;
 /// Output pixels per im2col tile of candle's CPU convolution (one tile per thread in flight).
-const CONV_TILE: u64 = crate::layers::CONV_TILE as u64;
+const CONV_TILE: u64 = 512;
 
 /// The bytes [`relight_full`] / [`gain_bias_staged`] hold at their peak for a `width × height`
 /// working image with the network `cfg` in `dtype` (see [`MemoryPlan`]), with as many
@@ -356,6 +357,18 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
     let threads = u(threads.max(1));
     let tiles = |cin: u64, cout: u64, k: u64, out_px: u64| {
         threads.min(out_px.div_ceil(CONV_TILE)) * CONV_TILE.min(out_px) * (cin * k * k + cout) * f
+    };
+    // A 3×3 convolution of the CPU f32 path (`pixl_nn::conv3x3`): one im2col tile per thread at
+    // work (a single one when there are fewer tiles than threads), written straight into the
+    // output; in bf16 candle's conv2d as above.
+    let fast = dtype == DType::F32;
+    let tiles3 = |cin: u64, cout: u64, out_px: u64| {
+        if !fast {
+            return tiles(cin, cout, 3, out_px);
+        }
+        let n = out_px.div_ceil(u(tile_pixels(cin as usize)));
+        let workers = if n < threads { 1 } else { threads };
+        workers * f * u(conv3x3::scratch_floats(cin as usize, out_px as usize))
     };
 
     let weights = u(cfg.param_count()) * s;
@@ -438,29 +451,42 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
     let resize0 = cs * (oc[0] * n + 48 * oc[0] * n);
     let rn_px = [16 * n, 4 * n, n, n3];
     let rn_tiles = (0..4)
-        .map(|i| tiles(oc[i], fe, 3, rn_px[i]))
+        .map(|i| tiles3(oc[i], fe, rn_px[i]))
         .max()
         .unwrap_or(0)
-        .max(tiles(oc[3], oc[3], 3, n3));
+        .max(tiles3(oc[3], oc[3], n3));
     let head_layers = kept_blocks + readouts + project.max(resize0 + cs * 16 * fe * n + rn_tiles) + layers;
-    // refinenet1: path, its residual units (6 maps each), the ×2 resize and the 1×1 out_conv
-    // (input copy, matmul result, output, bias).
-    let rcu = |a: u64| cs * 7 * fe * a;
+    // refinenet1: path, its residual units, the ×2 resize and the 1×1 out_conv. f32: a unit is
+    // its input and two conv outputs (ReLUs and skip fused), the out_conv the resized map, the
+    // matrix product and its bias added; bf16: 7 maps per unit, and the out_conv's input copy,
+    // matmul result, output and bias.
+    let (rcu_maps, out_conv_maps) = if fast { (3, 3) } else { (7, 4) };
+    let rcu = |a: u64| cs * rcu_maps * fe * a;
     let refine1 = kept_blocks
         + readouts
         + layers
         + cs * 16 * fe * n * 3
-        + (rcu(16 * n) + tiles(fe, fe, 3, 16 * n)).max(cs * fe * 64 * n * 4);
-    let out1 = kept_blocks + readouts + layers + cs * fe * 64 * n * (1 + 1 + 1) + tiles(fe, fe / 2, 3, 64 * n);
+        + (rcu(16 * n) + tiles3(fe, fe, 16 * n)).max(cs * fe * 64 * n * out_conv_maps);
+    let out1 = kept_blocks + readouts + layers + cs * fe * 64 * n * (1 + 1 + 1) + tiles3(fe, fe / 2, 64 * n);
     let tail = kept_blocks
         + readouts
         + layers
         + cs * (fe * 64 * n + fe / 2 * 64 * n)
-        + cs * (fe / 2 * px + (fe / 2 * px + hid * px).max(2 * hid * px))
-        + tiles(fe / 2, hid, 3, px);
-    // Modulation: F, its copy for the 1×1 conv, the six maps (result, output, bias), then the
-    // cropped gain and bias as f32 vectors.
-    let modulation = cs * (2 * hid * px + 18 * px) + 2 * 6 * hw * f;
+        + if fast {
+            // output_conv2 writes its result straight from the resized map, ReLU fused.
+            cs * (fe / 2 * px + hid * px)
+        } else {
+            cs * (fe / 2 * px + (fe / 2 * px + hid * px).max(2 * hid * px))
+        }
+        + tiles3(fe / 2, hid, px);
+    // Modulation: F, then the six maps (f32: the matrix product and its bias added; bf16: F's
+    // copy for candle's 1×1 conv, result, output, bias), then the cropped gain and bias as f32
+    // vectors.
+    let modulation = if fast {
+        cs * (hid * px + 12 * px)
+    } else {
+        cs * (2 * hid * px + 18 * px)
+    } + 2 * 6 * hw * f;
 
     let stages = vec![
         ("patch embedding", base + patch_embed),

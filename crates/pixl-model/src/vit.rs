@@ -27,18 +27,6 @@ pub struct PatchRope<'a> {
     pub prefix: usize,
 }
 
-impl PatchRope<'_> {
-    fn apply(&self, xs: &Tensor) -> Result<Tensor> {
-        let n = xs.dim(2)?;
-        if self.prefix == 0 {
-            return self.rope.apply(xs);
-        }
-        let reg = xs.narrow(2, 0, self.prefix)?;
-        let patches = self.rope.apply(&xs.narrow(2, self.prefix, n - self.prefix)?)?;
-        Tensor::cat(&[&reg, &patches], 2)
-    }
-}
-
 /// Multi-head self-attention, fused `qkv` projection then `proj` (timm names).
 #[derive(Clone, Debug)]
 pub struct Attention {
@@ -54,21 +42,11 @@ impl Attention {
         Ok(Self { qkv, proj, heads })
     }
 
-    /// `(B, N, d)` → `(B, N, d)`; RoPE rotates queries and keys when given.
+    /// `(B, N, d)` → `(B, N, d)`; RoPE rotates queries and keys when given. On the CPU in f32
+    /// the head split and the rotation are one pass ([`fused::attention_qkv_rope`]).
     pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
-        let (b, n, c) = xs.dims3()?;
-        let hd = c / self.heads;
-        let qkv = fused::linear(xs, &self.qkv, Act::None)?
-            .reshape((b, n, 3, self.heads, hd))?
-            .permute((2, 0, 3, 1, 4))?;
-        let (mut q, mut k) = (qkv.get(0)?.contiguous()?, qkv.get(1)?.contiguous()?);
-        let v = qkv.get(2)?.contiguous()?;
-        if let Some(r) = rope {
-            q = r.apply(&q)?.contiguous()?;
-            k = r.apply(&k)?.contiguous()?;
-        }
-        let out = pixl_nn::attention(&q, &k, &v)?; // (B, heads, N, hd)
-        let out = out.transpose(1, 2)?.reshape((b, n, c))?;
+        let qkv = fused::linear(xs, &self.qkv, Act::None)?;
+        let out = fused::attention_qkv_rope(&qkv, self.heads, rope.map(|r| (r.rope, r.prefix)))?;
         fused::linear(&out, &self.proj, Act::None)
     }
 }

@@ -18,6 +18,7 @@ use rayon::prelude::*;
 use std::cell::RefCell;
 
 pub fn attention(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+    let _t = crate::profile::span("attention");
     let fused = matches!(q.device(), Device::Cpu)
         && [q, k, v].iter().all(|t| t.dtype() == DType::F32)
         && !crate::needs_grad(&[q, k, v]);

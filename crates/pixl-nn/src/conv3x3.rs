@@ -1,9 +1,14 @@
 //! 3×3 convolution (padding 1, stride 1 or 2) for inference on the CPU (the relighting network's
-//! DPT head, DA3's DPT head, Marigold's VAE), and [`Conv3x3`], the layer that uses it: the input is copied
-//! once into a zero-padded channels-last buffer, each band of output rows is unrolled into an
-//! im2col matrix by contiguous copies of `C` floats, multiplied by the weights with one large
-//! (internally parallel) matrix product, and written back channels-first with the bias, a
-//! skip connection and the activation applied on the way.
+//! DPT head, DA3's DPT head, Marigold's VAE), and [`Conv3x3`], the layer that uses it.
+//!
+//! The output pixels of each image are cut into tiles of [`tile_pixels`] pixels. Tiles run in parallel on rayon's pool; each
+//! worker unrolls its tile straight from the channels-first input into an im2col matrix `(9·C,
+//! t)` (rows `(c, ky, kx)`, so the weights are PyTorch's `(O, C, 3, 3)` read as `(O, 9·C)` with
+//! no reordering), an optional ReLU of the input applied on the way, multiplies it by the weights
+//! with one single-threaded GEMM that writes the `(O, t)` result in place into the channels-first
+//! output, and applies the bias, a skip connection and the activation to that cache-hot block.
+//! No padded copy of the input, no result buffer, no copy back. When an image has fewer tiles
+//! than there are threads, the tiles run one after another with the GEMM itself parallel.
 //!
 //! Same operation as `candle_nn::Conv2d` (which the head uses on other devices): weight
 //! `(O, C, 3, 3)`, `out[o, y, x] = b[o] + Σ_{c,ky,kx} w[o, c, ky, kx]·in[c, s·y + ky − 1,
@@ -13,10 +18,19 @@ use candle_core::{Layout, Module, Result, Storage, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use rayon::prelude::*;
 
-/// Largest im2col band, in floats (about 32 MiB).
-const BAND_FLOATS: usize = 8 << 20;
+/// Output pixels per tile for `cin` input channels. 256 measured fastest on the heads' shapes
+/// (`examples/bench_conv3x3`: 64 to 1024 input channels, against 128, 227–455 and 1024 pixels).
+pub fn tile_pixels(_cin: usize) -> usize {
+    256
+}
 
-/// Weights in im2col order: `(O, 9·C)`, columns `(ky, kx, c)`.
+/// f32 values of im2col scratch one worker thread holds during a convolution with `cin` input
+/// channels and `out_px` output pixels per image (allocated per call, freed on return).
+pub fn scratch_floats(cin: usize, out_px: usize) -> usize {
+    tile_pixels(cin).min(out_px.max(1)) * 9 * cin
+}
+
+/// Weights in im2col order: `(O, 9·C)`, columns `(c, ky, kx)` (PyTorch's layout, flattened).
 #[derive(Clone, Debug)]
 pub struct Im2colWeight {
     matrix: Tensor,
@@ -29,7 +43,7 @@ impl Im2colWeight {
         if (kh, kw) != (3, 3) {
             candle_core::bail!("3x3 convolution given a {kh}x{kw} kernel");
         }
-        let matrix = weight.permute((0, 2, 3, 1))?.contiguous()?.reshape((o, 9 * c))?;
+        let matrix = weight.contiguous()?.reshape((o, 9 * c))?;
         Ok(Self { matrix, cin: c })
     }
 }
@@ -50,91 +64,205 @@ fn cpu_f32_slice<'a>(storage: &'a Storage, layout: &Layout) -> Result<&'a [f32]>
     fused::slice(cpu, layout, "3x3 convolution")
 }
 
-/// `(B, C, H, W)` f32 CPU tensor → `(B, O, H', W')`, im2col bands of up to 8 Mi floats.
+/// `(B, C, H, W)` f32 CPU tensor → `(B, O, H', W')`, tiles of [`tile_pixels`] output pixels.
 pub fn conv3x3(xs: &Tensor, w: &Im2colWeight, stride: usize, epi: &Epilogue) -> Result<Tensor> {
-    conv3x3_banded(xs, w, stride, epi, BAND_FLOATS)
+    conv3x3_tiled(xs, w, stride, false, epi, tile_pixels(w.cin))
 }
 
-/// [`conv3x3`] with im2col bands of at most `band_floats` floats (whole output rows, at least
-/// one): smaller bands hold less memory, larger ones give the matrix product more work per call.
-pub fn conv3x3_banded(
+/// The output pointer shared by the workers; each writes only its own tiles' pixels.
+#[derive(Clone, Copy)]
+struct OutPtr(*mut f32);
+// SAFETY: workers write disjoint index sets (distinct tiles) of one live allocation.
+unsafe impl Send for OutPtr {}
+unsafe impl Sync for OutPtr {}
+
+/// Geometry of one image's convolution.
+#[derive(Clone, Copy)]
+struct Geom {
+    c: usize,
+    h: usize,
+    w: usize,
+    stride: usize,
+    wo: usize,
+}
+
+/// Unrolls output pixels `p0 .. p0 + t` (flat, row-major over `(H', W')`) of one image `img`
+/// `(C, H, W)` into `cols` `(9·C, t)`: row `(c, ky, kx)` holds `in[c, s·y + ky − 1, s·x + kx − 1]`
+/// (0 outside the image), ReLU'd when `relu`.
+fn im2col(img: &[f32], g: Geom, p0: usize, t: usize, relu: bool, cols: &mut [f32]) {
+    let Geom { c, h, w, stride, wo } = g;
+    for ch in 0..c {
+        let plane = &img[ch * h * w..(ch + 1) * h * w];
+        for ky in 0..3 {
+            for kx in 0..3 {
+                let row = &mut cols[((ch * 3 + ky) * 3 + kx) * t..][..t];
+                let mut j = 0;
+                while j < t {
+                    let (oy, ox) = ((p0 + j) / wo, (p0 + j) % wo);
+                    let n = (wo - ox).min(t - j);
+                    let seg = &mut row[j..j + n];
+                    j += n;
+                    let iy = oy * stride + ky;
+                    if iy == 0 || iy > h {
+                        seg.fill(0.0);
+                        continue;
+                    }
+                    let line = &plane[(iy - 1) * w..iy * w];
+                    if stride == 1 {
+                        // Input column of seg[i] is ox + i + kx − 1: valid for lo ≤ i < hi.
+                        let first = ox + kx; // input column + 1
+                        let lo = 1usize.saturating_sub(first).min(n);
+                        let hi = (w + 1).saturating_sub(first).min(n);
+                        seg[..lo].fill(0.0);
+                        if lo < hi {
+                            let src = &line[first + lo - 1..first + hi - 1];
+                            if relu {
+                                for (d, &v) in seg[lo..hi].iter_mut().zip(src) {
+                                    *d = v.max(0.0);
+                                }
+                            } else {
+                                seg[lo..hi].copy_from_slice(src);
+                            }
+                        }
+                        seg[hi.max(lo)..].fill(0.0);
+                    } else {
+                        for (i, d) in seg.iter_mut().enumerate() {
+                            let ix = (ox + i) * stride + kx;
+                            let v = if ix == 0 || ix > w { 0.0 } else { line[ix - 1] };
+                            *d = if relu { v.max(0.0) } else { v };
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// [`conv3x3`] with an optional ReLU of the input (`input_relu`: `conv(relu(x))`) and tiles of
+/// `tile_px` output pixels (at least one).
+pub fn conv3x3_tiled(
     xs: &Tensor,
     w: &Im2colWeight,
     stride: usize,
+    input_relu: bool,
     epi: &Epilogue,
-    band_floats: usize,
+    tile_px: usize,
 ) -> Result<Tensor> {
+    let _t = crate::profile::span("conv 3x3");
     let (b, c, h, wd) = xs.dims4()?;
     if c != w.cin {
         candle_core::bail!("3x3 convolution expects {} input channels, got {c}", w.cin);
     }
+    if !(stride == 1 || stride == 2) {
+        candle_core::bail!("3x3 convolution: stride {stride} (1 or 2 supported)");
+    }
     let o = w.matrix.dim(0)?;
-    let (ho, wo) = ((h - 1) / stride + 1, (wd - 1) / stride + 1);
-    let xs = xs.contiguous()?;
-    let (storage, layout) = xs.storage_and_layout();
-    let src = cpu_f32_slice(&storage, layout)?;
-    let mut out = vec![0f32; b * o * ho * wo];
+    let (ho, wo) = ((h.max(1) - 1) / stride + 1, (wd.max(1) - 1) / stride + 1);
+    let plane = ho * wo;
+    let mut out = vec![0f32; b * o * plane];
     if let Some(r) = epi.residual {
         if r.len() != out.len() {
             candle_core::bail!("residual of {} values for an output of {}", r.len(), out.len());
         }
     }
-    let (ph, pw) = (h + 2, wd + 2);
-    let k = 9 * c;
-    // Output rows per band: as many as fit `band_floats`, at least one.
-    let band_rows = (band_floats / (k * wo).max(1)).clamp(1, ho.max(1));
-    for bi in 0..b {
-        // Zero-padded channels-last copy of this image: padded[(y, x, c)].
-        let mut padded = vec![0f32; ph * pw * c];
-        let plane = &src[bi * c * h * wd..(bi + 1) * c * h * wd];
-        padded
-            .par_chunks_mut(pw * c)
-            .enumerate()
-            .filter(|(y, _)| (1..=h).contains(y))
-            .for_each(|(y, row)| {
-                for ch in 0..c {
-                    let s = &plane[ch * h * wd + (y - 1) * wd..ch * h * wd + y * wd];
-                    for (x, &v) in s.iter().enumerate() {
-                        row[(x + 1) * c + ch] = v;
-                    }
-                }
-            });
-        let dst = &mut out[bi * o * ho * wo..(bi + 1) * o * ho * wo];
-        for y0 in (0..ho).step_by(band_rows) {
-            let rows = band_rows.min(ho - y0);
-            let t = rows * wo;
-            let mut cols = vec![0f32; t * k];
-            cols.par_chunks_mut(k).enumerate().for_each(|(p, col)| {
-                let (oy, ox) = (y0 + p / wo, p % wo);
-                for ky in 0..3 {
-                    let row = (oy * stride + ky) * pw;
-                    for kx in 0..3 {
-                        let s = (row + ox * stride + kx) * c;
-                        col[(ky * 3 + kx) * c..(ky * 3 + kx + 1) * c].copy_from_slice(&padded[s..s + c]);
-                    }
-                }
-            });
-            let cols = Tensor::from_vec(cols, (t, k), xs.device())?;
-            let res = w.matrix.matmul(&cols.t()?)?.contiguous()?; // (O, t)
-            drop(cols);
-            let (res_storage, res_layout) = res.storage_and_layout();
-            let res = cpu_f32_slice(&res_storage, res_layout)?;
-            let start = y0 * wo;
-            dst.par_chunks_mut(ho * wo).enumerate().for_each(|(oc, plane)| {
-                let bias = epi.bias.map_or(0.0, |bv| bv[oc]);
-                let seg = &mut plane[start..start + t];
-                let r = &res[oc * t..(oc + 1) * t];
-                let base = bi * o * ho * wo + oc * ho * wo + start;
-                for (j, (d, &v)) in seg.iter_mut().zip(r).enumerate() {
-                    let mut v = v + bias;
-                    if let Some(skip) = epi.residual {
-                        v += skip[base + j];
-                    }
-                    *d = epi.act.apply(v);
-                }
-            });
+    if let Some(bias) = epi.bias {
+        if bias.len() != o {
+            candle_core::bail!("bias of {} values for {o} output channels", bias.len());
         }
     }
+    if out.is_empty() || h == 0 || wd == 0 {
+        return Tensor::from_vec(out, (b, o, ho, wo), xs.device());
+    }
+    let xs = xs.contiguous()?;
+    let (storage, layout) = xs.storage_and_layout();
+    let src = cpu_f32_slice(&storage, layout)?;
+    let (w_storage, w_layout) = w.matrix.storage_and_layout();
+    let weights = cpu_f32_slice(&w_storage, w_layout)?;
+    let k = 9 * c;
+    let g = Geom {
+        c,
+        h,
+        w: wd,
+        stride,
+        wo,
+    };
+    let tile = tile_px.clamp(1, plane);
+    let per_image = plane.div_ceil(tile);
+    let tiles = b * per_image;
+    let threads = rayon::current_num_threads().max(1);
+    let dst = OutPtr(out.as_mut_ptr());
+    // One tile: im2col, GEMM into the output, epilogue on the block just written.
+    let run = |ti: usize, cols: &mut [f32], par: gemm::Parallelism| {
+        let (bi, p0) = (ti / per_image, (ti % per_image) * tile);
+        let t = tile.min(plane - p0);
+        let cols = &mut cols[..k * t];
+        im2col(&src[bi * c * h * wd..(bi + 1) * c * h * wd], g, p0, t, input_relu, cols);
+        let base = bi * o * plane + p0;
+        // SAFETY: dst (o × t, row stride `plane`) lies inside `out` at `base` (p0 + t ≤ plane), and
+        // no other tile writes these indices; lhs (o × k, row stride k) is `weights`; rhs
+        // (k × t, row stride t) is `cols`.
+        unsafe {
+            let d = dst;
+            gemm::gemm(
+                o,
+                t,
+                k,
+                d.0.add(base),
+                1,
+                plane as isize,
+                false,
+                weights.as_ptr(),
+                1,
+                k as isize,
+                cols.as_ptr(),
+                1,
+                t as isize,
+                0.0f32,
+                1.0f32,
+                false,
+                false,
+                false,
+                par,
+            );
+        }
+        if epi.bias.is_none() && epi.residual.is_none() && epi.act == Act::None {
+            return;
+        }
+        for oc in 0..o {
+            let at = base + oc * plane;
+            // SAFETY: the t values at `at` are this tile's output of channel oc (see above).
+            let seg = unsafe { std::slice::from_raw_parts_mut(dst.0.add(at), t) };
+            let bias = epi.bias.map_or(0.0, |bv| bv[oc]);
+            match epi.residual {
+                Some(skip) => {
+                    for (d, &s) in seg.iter_mut().zip(&skip[at..at + t]) {
+                        *d = epi.act.apply(*d + bias + s);
+                    }
+                }
+                None => {
+                    for d in seg.iter_mut() {
+                        *d = epi.act.apply(*d + bias);
+                    }
+                }
+            }
+        }
+    };
+    if tiles < threads {
+        let mut cols = vec![0f32; k * tile];
+        for ti in 0..tiles {
+            run(ti, &mut cols, gemm::Parallelism::Rayon(threads));
+        }
+    } else {
+        let tasks = (4 * threads).min(tiles);
+        let per_task = tiles.div_ceil(tasks);
+        (0..tasks).into_par_iter().for_each(|task| {
+            let mut cols = vec![0f32; k * tile];
+            for ti in task * per_task..((task + 1) * per_task).min(tiles) {
+                run(ti, &mut cols, gemm::Parallelism::None);
+            }
+        });
+    }
+    drop(storage);
     Tensor::from_vec(out, (b, o, ho, wo), xs.device())
 }
 
@@ -217,7 +345,14 @@ mod tests {
     #[test]
     fn matches_candle_conv2d() {
         let dev = Device::Cpu;
-        for (stride, (h, w)) in [(1, (9, 13)), (2, (9, 13)), (2, (8, 6)), (1, (1, 1))] {
+        for (stride, (h, w)) in [
+            (1, (9, 13)),
+            (2, (9, 13)),
+            (2, (8, 6)),
+            (1, (1, 1)),
+            (2, (1, 2)),
+            (1, (2, 1)),
+        ] {
             let xs = Tensor::randn(0f32, 1.0, (2, 5, h, w), &dev).unwrap();
             let wt = Tensor::randn(0f32, 1.0, (7, 5, 3, 3), &dev).unwrap();
             let bias = Tensor::randn(0f32, 1.0, 7, &dev).unwrap();
@@ -254,9 +389,21 @@ mod tests {
                     .unwrap()
             };
             assert!(max_abs(&got, &want) < 1e-4, "stride {stride} {h}x{w}");
-            // One output row per band gives the same values.
-            let banded = conv3x3_banded(&xs, &im2col, stride, &epi, 1).unwrap();
-            assert!(max_abs(&got, &banded) < 1e-5, "banded, stride {stride} {h}x{w}");
+            // Tiles of one pixel, and tiles that straddle output rows, give the same values.
+            for tile in [1, 7] {
+                let tiled = conv3x3_tiled(&xs, &im2col, stride, false, &epi, tile).unwrap();
+                assert!(max_abs(&got, &tiled) < 1e-5, "tile {tile}, stride {stride} {h}x{w}");
+            }
+            // A ReLU of the input on the way equals the convolution of the ReLU'd input.
+            let want_relu = candle_nn::Conv2d::new(wt.clone(), Some(bias.clone()), cfg)
+                .forward(&xs.relu().unwrap())
+                .unwrap();
+            let want_relu = (want_relu + &skip).unwrap().relu().unwrap();
+            let got_relu = conv3x3_tiled(&xs, &im2col, stride, true, &epi, 5).unwrap();
+            assert!(
+                max_abs(&got_relu, &want_relu) < 1e-4,
+                "input ReLU, stride {stride} {h}x{w}"
+            );
         }
     }
 }

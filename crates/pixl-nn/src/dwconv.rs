@@ -37,6 +37,7 @@ impl DepthwiseConv2d {
 
 impl Module for DepthwiseConv2d {
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let _t = crate::profile::span("depthwise conv");
         depthwise_conv2d(xs, &self.weight, &self.bias)
     }
 }

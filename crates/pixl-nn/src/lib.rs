@@ -18,6 +18,7 @@
 //! - [`fastmath`] — vectorisable `exp` and row softmax for the CPU kernels.
 //! - [`fused`] — parallel fused bias/activation/residual/norm passes and a fused `Linear`, for
 //!   inference only (the model layers call them when no gradient is needed).
+//! - [`profile`] — wall time by operation kind, off unless switched on.
 //! - [`testing`] — seeded test tensors and an f64 finite-difference gradient check.
 pub mod attention;
 pub mod backbones;
@@ -28,6 +29,7 @@ pub mod fused;
 pub mod mlp;
 pub mod norm;
 pub mod ops;
+pub mod profile;
 pub mod rope;
 pub mod testing;
 

@@ -36,6 +36,7 @@ impl Module for LayerNorm {
 /// always take the composed path, which keeps full f64 precision (candle's kernel would round to
 /// f32). Differentiable path: composed candle ops, statistics in f32 (f64 for f64 inputs).
 pub fn layer_norm(xs: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
+    let _t = crate::profile::span("layer norm");
     let fast_dtype = matches!(xs.dtype(), DType::F32 | DType::F16 | DType::BF16);
     if !crate::needs_grad(&[xs, w, b]) && fast_dtype {
         return candle_nn::ops::layer_norm(&xs.contiguous()?, &w.contiguous()?, &b.contiguous()?, eps as f32);
@@ -70,7 +71,7 @@ impl LayerNorm2d {
 
 impl Module for LayerNorm2d {
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let xs = xs.permute((0, 2, 3, 1))?.contiguous()?;
-        self.inner.forward(&xs)?.permute((0, 3, 1, 2))
+        let xs = crate::fused::to_channels_last(xs)?;
+        crate::fused::to_channels_first(&self.inner.forward(&xs)?)
     }
 }

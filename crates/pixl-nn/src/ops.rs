@@ -6,6 +6,7 @@
 //! - [`gelu`]: exact erf form, differentiable everywhere.
 //! - [`resize_bilinear`]: PyTorch `F.interpolate(mode="bilinear", align_corners=False)`.
 use candle_core::{DType, Device, Result, Tensor, D};
+use rayon::prelude::*;
 
 /// Softmax over the last dimension.
 pub fn softmax_last_dim(xs: &Tensor) -> Result<Tensor> {
@@ -29,9 +30,10 @@ pub fn gelu(xs: &Tensor) -> Result<Tensor> {
 ///
 /// Differentiable path: `Wy · X · Wxᵀ` with the interpolation matrices of [`interp_matrix`], so it
 /// is differentiable through candle's matmul backward (cost `O(C·H·W·(h + w))`, fine for feature
-/// maps, heavy for full-resolution images). Fast path (no gradient): candle's
-/// `upsample_bilinear2d(h, w, align_corners = false)`, which implements the same formula (checked
-/// against the matrix path in the tests) in one direct pass.
+/// maps, heavy for full-resolution images). Fast paths (no gradient): on the CPU in f32, one
+/// direct parallel pass over output rows with PyTorch's f32 index and weight arithmetic;
+/// elsewhere candle's `upsample_bilinear2d(h, w, align_corners = false)` (candle's CPU kernel is
+/// single-threaded). Both are checked against the matrix path in the tests.
 pub fn resize_bilinear(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
     let (_b, _c, ih, iw) = xs.dims4()?;
     if ih == h && iw == w {
@@ -40,7 +42,11 @@ pub fn resize_bilinear(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
     if ih == 0 || iw == 0 || h == 0 || w == 0 {
         candle_core::bail!("bilinear resize from {ih}x{iw} to {h}x{w}: sizes must be positive");
     }
+    let _t = crate::profile::span("bilinear resize");
     if !crate::needs_grad(&[xs]) {
+        if crate::fused::cpu_f32(xs) {
+            return resize_bilinear_cpu(xs, h, w);
+        }
         return xs.upsample_bilinear2d(h, w, false);
     }
     let dtype = xs.dtype();
@@ -73,4 +79,47 @@ fn interp_weights(n_in: usize, n_out: usize) -> Vec<f64> {
         m[o * n_in + i1] += f;
     }
     m
+}
+
+/// One output sample's two input samples and their weights, as PyTorch's CPU kernel computes
+/// them in f32: `src = max(scale·(o + 0.5) − 0.5, 0)`, `scale = n_in / n_out`.
+fn taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32, f32)> {
+    let scale = n_in as f32 / n_out as f32;
+    (0..n_out)
+        .map(|o| {
+            let src = (scale * (o as f32 + 0.5) - 0.5).max(0.0);
+            let i0 = (src as usize).min(n_in - 1);
+            let i1 = if i0 + 1 < n_in { i0 + 1 } else { i0 };
+            let l1 = src - i0 as f32;
+            (i0, i1, 1.0 - l1, l1)
+        })
+        .collect()
+}
+
+/// [`resize_bilinear`] for a CPU f32 tensor with positive sizes, parallel over output rows.
+fn resize_bilinear_cpu(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
+    let (b, c, ih, iw) = xs.dims4()?;
+    let xs = xs.contiguous()?;
+    let (ty, tx) = (taps(ih, h), taps(iw, w));
+    let mut out = vec![0f32; b * c * h * w];
+    {
+        let (storage, layout) = xs.storage_and_layout();
+        let candle_core::Storage::Cpu(cpu) = &*storage else {
+            candle_core::bail!("bilinear resize: expected a CPU tensor");
+        };
+        let src = crate::fused::slice(cpu, layout, "bilinear resize")?;
+        out.par_chunks_mut(w).with_min_len(8).enumerate().for_each(|(r, row)| {
+            let (plane, y) = (r / h, r % h);
+            let (y0, y1, wy0, wy1) = ty[y];
+            let base = plane * ih * iw;
+            let (r0, r1) = (
+                &src[base + y0 * iw..base + (y0 + 1) * iw],
+                &src[base + y1 * iw..base + (y1 + 1) * iw],
+            );
+            for (d, &(x0, x1, wx0, wx1)) in row.iter_mut().zip(&tx) {
+                *d = wy0 * (wx0 * r0[x0] + wx1 * r0[x1]) + wy1 * (wx0 * r1[x0] + wx1 * r1[x1]);
+            }
+        });
+    }
+    Tensor::from_vec(out, (b, c, h, w), xs.device())
 }
