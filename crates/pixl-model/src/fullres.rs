@@ -457,10 +457,10 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
         .max(tiles3(oc[3], oc[3], n3));
     let head_layers = kept_blocks + readouts + project.max(resize0 + cs * 16 * fe * n + rn_tiles) + layers;
     // refinenet1: path, its residual units, the ×2 resize and the 1×1 out_conv. f32: a unit is
-    // its input and two conv outputs (ReLUs and skip fused), the out_conv the resized map, the
-    // matrix product and its bias added; bf16: 7 maps per unit, and the out_conv's input copy,
-    // matmul result, output and bias.
-    let (rcu_maps, out_conv_maps) = if fast { (3, 3) } else { (7, 4) };
+    // its input and two conv outputs (ReLUs and skip fused), the out_conv the resized map and
+    // its output (the matrix product added to the bias in place); bf16: 7 maps per unit, and the
+    // out_conv's input copy, matmul result, output and bias.
+    let (rcu_maps, out_conv_maps) = if fast { (3, 2) } else { (7, 4) };
     let rcu = |a: u64| cs * rcu_maps * fe * a;
     let refine1 = kept_blocks
         + readouts
@@ -479,11 +479,11 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
             cs * (fe / 2 * px + (fe / 2 * px + hid * px).max(2 * hid * px))
         }
         + tiles3(fe / 2, hid, px);
-    // Modulation: F, then the six maps (f32: the matrix product and its bias added; bf16: F's
-    // copy for candle's 1×1 conv, result, output, bias), then the cropped gain and bias as f32
-    // vectors.
+    // Modulation: F, then the six maps (f32: the matrix product added to the bias in place;
+    // bf16: F's copy for candle's 1×1 conv, result, output, bias), then the cropped gain and bias
+    // as f32 vectors.
     let modulation = if fast {
-        cs * (hid * px + 12 * px)
+        cs * (hid * px + 6 * px)
     } else {
         cs * (2 * hid * px + 18 * px)
     } + 2 * 6 * hw * f;

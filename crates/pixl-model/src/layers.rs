@@ -15,7 +15,7 @@
 use candle_core::{DType, Module, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use pixl_nn::conv3x3::{conv3x3_tiled, tile_pixels, Epilogue, Im2colWeight};
-use pixl_nn::fused::{self, Act, Vector};
+use pixl_nn::fused::{self, Act};
 
 impl Conv {
     /// Whether the CPU f32 inference paths may take `xs` (no gradient anywhere).
@@ -71,7 +71,7 @@ impl Conv {
         .map(Some)
     }
 
-    /// The 1×1 CPU path, when it applies: `W (O, C) · X (C, H·W)` per image, then bias and `act`.
+    /// The 1×1 CPU path, when it applies ([`fused::conv1x1`]).
     fn forward_conv1x1(&self, xs: &Tensor, act: Act) -> Result<Option<Tensor>> {
         let (w, b, cfg) = (self.0.weight(), self.0.bias(), self.0.config());
         let fits = self.cpu_inference(xs)
@@ -84,20 +84,7 @@ impl Conv {
             return Ok(None);
         }
         let _t = pixl_nn::profile::span("matmul (1x1 conv)");
-        let (bsz, c, h, wd) = xs.dims4()?;
-        let o = w.dim(0)?;
-        let w = w.reshape((o, c))?;
-        let xs = xs.contiguous()?;
-        let ys = (0..bsz)
-            .map(|i| w.matmul(&xs.get(i)?.reshape((c, h * wd))?))
-            .collect::<Result<Vec<_>>>()?;
-        let ys = Tensor::stack(&ys, 0)?.reshape((bsz, o, h, wd))?;
-        match b {
-            Some(b) => fused::bias_act_channels(&ys, &Vector::new(b.clone())?, act).map(Some),
-            None if act == Act::Relu => fused::relu(&ys).map(Some),
-            None if act == Act::None => Ok(Some(ys)),
-            None => Ok(None),
-        }
+        fused::conv1x1(xs, w, b, act)
     }
 
     /// `act(conv(relu?(xs)) + residual)`: the ReLU of the input (when `input_relu`), the skip

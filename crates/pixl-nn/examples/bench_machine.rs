@@ -117,7 +117,7 @@ fn bandwidth(t: usize) {
 }
 
 fn gemm_rate(t: usize) {
-    let shapes: [(&str, usize, usize, usize); 8] = [
+    let shapes: [(&str, usize, usize, usize); 10] = [
         ("paper qkv      ", 1032, 1024, 3072),
         ("paper mlp fc1  ", 1032, 1024, 4096),
         ("paper mlp fc2  ", 1032, 4096, 1024),
@@ -126,6 +126,8 @@ fn gemm_rate(t: usize) {
         ("small mlp fc2  ", 1028, 1536, 384),
         ("conv 3x3 64->32", 32, 576, 1024),
         ("conv 3x3 256   ", 256, 2304, 1024),
+        ("conv 1x1 128   ", 128, 128, 65536),
+        ("conv 1x1 32->6 ", 6, 32, 262_144),
     ];
     for (name, m, k, n) in shapes {
         let a: Vec<f32> = (0..m * k).map(|i| ((i * 7919) % 1000) as f32 * 1e-3).collect();

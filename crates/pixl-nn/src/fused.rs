@@ -477,6 +477,91 @@ pub fn linear(xs: &Tensor, layer: &candle_nn::Linear, act: Act) -> Result<Tensor
     Tensor::from_vec(out, out_dims, xs.device())
 }
 
+/// `act(W · x + b)` per pixel: a 1×1, stride-1, unpadded convolution of `xs` `(B, C, H, W)`
+/// with `weight` `(O, C, 1, 1)` and an optional `bias` `(O)`, on the CPU in f32 without
+/// gradients: per image, the output planes are filled with the bias, one parallel GEMM
+/// `W (O, C) · X (C, H·W)` adds to them in place, and the activation runs in place. `None` when
+/// it does not apply (gradients, other devices or dtypes): the caller takes candle's conv.
+pub fn conv1x1(xs: &Tensor, weight: &Tensor, bias: Option<&Tensor>, act: Act) -> Result<Option<Tensor>> {
+    let tensors = [Some(xs), Some(weight), bias];
+    let tensors: Vec<&Tensor> = tensors.into_iter().flatten().collect();
+    if tensors.iter().any(|t| !cpu_f32(t)) || crate::needs_grad(&tensors) {
+        return Ok(None);
+    }
+    let (b, c, h, w) = xs.dims4()?;
+    let (o, wc, kh, kw) = weight.dims4()?;
+    if (wc, kh, kw) != (c, 1, 1) {
+        candle_core::bail!("1x1 convolution of {c} channels with a {:?} weight", weight.dims());
+    }
+    let bias = bias.map(|b| b.to_vec1::<f32>()).transpose()?;
+    if bias.as_ref().is_some_and(|bv| bv.len() != o) {
+        candle_core::bail!(
+            "1x1 convolution: bias of {} values for {o} outputs",
+            bias.as_ref().map_or(0, Vec::len)
+        );
+    }
+    let px = h * w;
+    let mut out = vec![0f32; b * o * px];
+    if let Some(bv) = &bias {
+        out.par_chunks_mut(px.max(1))
+            .enumerate()
+            .for_each(|(i, plane)| plane.fill(bv[i % o]));
+    }
+    let xs = xs.contiguous()?;
+    let weight = weight.contiguous()?;
+    {
+        let (xs_storage, xs_layout) = xs.storage_and_layout();
+        let (w_storage, w_layout) = weight.storage_and_layout();
+        let (candle_core::Storage::Cpu(xc), candle_core::Storage::Cpu(wcpu)) = (&*xs_storage, &*w_storage) else {
+            candle_core::bail!("1x1 convolution: expected CPU tensors");
+        };
+        let x = slice(xc, xs_layout, "1x1 convolution input")?;
+        let wv = slice(wcpu, w_layout, "1x1 convolution weight")?;
+        let threads = rayon::current_num_threads();
+        let par = if threads > 1 {
+            gemm::Parallelism::Rayon(threads)
+        } else {
+            gemm::Parallelism::None
+        };
+        if px > 0 && o > 0 && c > 0 {
+            for bi in 0..b {
+                // SAFETY: dst (o × px, row stride px) is image bi's planes of `out`; lhs (o × c,
+                // row stride c) is the weight; rhs (c × px, row stride px) is image bi of `x`.
+                unsafe {
+                    gemm::gemm(
+                        o,
+                        px,
+                        c,
+                        out.as_mut_ptr().add(bi * o * px),
+                        1,
+                        px as isize,
+                        bias.is_some(),
+                        wv.as_ptr(),
+                        1,
+                        c as isize,
+                        x.as_ptr().add(bi * c * px),
+                        1,
+                        px as isize,
+                        1.0f32,
+                        1.0f32,
+                        false,
+                        false,
+                        false,
+                        par,
+                    );
+                }
+            }
+        }
+    }
+    if act != Act::None {
+        out.par_chunks_mut(CHUNK).for_each(|chunk| match act {
+            Act::Gelu => crate::fastmath::gelu_in_place(chunk),
+            _ => chunk.iter_mut().for_each(|v| *v = act.apply(*v)),
+        });
+    }
+    Tensor::from_vec(out, (b, o, h, w), xs.device()).map(Some)
+}
+
 /// `xs + ys` (a residual connection): [`add_act`]'s parallel pass when no gradient is needed,
 /// candle's differentiable add otherwise.
 pub fn residual(xs: &Tensor, ys: &Tensor) -> Result<Tensor> {
@@ -843,6 +928,27 @@ mod tests {
         }
         let wrong = candle_nn::Linear::new(Tensor::zeros((n, k + 1), DType::F32, &dev).unwrap(), None);
         assert!(linear(&x, &wrong, Act::None).is_err());
+    }
+
+    /// The 1×1 convolution against candle's conv2d, with and without bias, two images.
+    #[test]
+    fn conv1x1_matches_candle() {
+        let dev = Device::Cpu;
+        let x = Tensor::randn(0f32, 1.0, (2, 5, 7, 9), &dev).unwrap();
+        let w = Tensor::randn(0f32, 1.0, (3, 5, 1, 1), &dev).unwrap();
+        let b = Tensor::randn(0f32, 1.0, 3, &dev).unwrap();
+        for (bias, act) in [(true, Act::Relu), (false, Act::None)] {
+            let bias = bias.then(|| b.clone());
+            let want = candle_nn::Conv2d::new(w.clone(), bias.clone(), Default::default());
+            let want = act
+                .apply_tensor(candle_core::Module::forward(&want, &x).unwrap())
+                .unwrap();
+            let got = conv1x1(&x, &w, bias.as_ref(), act).unwrap().unwrap();
+            assert!(max_diff(&got, &want) < 1e-5, "{act:?}");
+        }
+        let var = candle_core::Var::from_tensor(&w).unwrap();
+        assert!(conv1x1(&x, var.as_tensor(), None, Act::None).unwrap().is_none());
+        assert!(conv1x1(&x, &w.narrow(1, 0, 4).unwrap(), None, Act::None).is_err());
     }
 
     /// Each fused op equals the composed candle ops, element for element.
