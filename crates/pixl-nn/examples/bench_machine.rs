@@ -176,10 +176,58 @@ fn gemm_rate(t: usize) {
     }
 }
 
+/// `X (m×k) · Wᵀ` with `W` stored `(n, k)` row-major, as a linear layer reads its weight.
+fn gemm_rate_transposed(t: usize) {
+    for (name, m, k, n) in [
+        ("paper mlp fc1 Wt", 1032, 1024, 4096),
+        ("paper mlp fc2 Wt", 1032, 4096, 1024),
+    ] {
+        let a: Vec<f32> = (0..m * k).map(|i| ((i * 7919) % 1000) as f32 * 1e-3).collect();
+        let w: Vec<f32> = (0..k * n).map(|i| ((i * 104_729) % 1000) as f32 * 1e-3).collect();
+        let mut c = vec![0f32; m * n];
+        let mut best = f64::INFINITY;
+        for _ in 0..7 {
+            let start = Instant::now();
+            // SAFETY: row-major A (m×k), W (n×k) read as Wᵀ (k×n: row stride 1, column stride k), C (m×n).
+            unsafe {
+                gemm::gemm(
+                    m,
+                    n,
+                    k,
+                    c.as_mut_ptr(),
+                    1,
+                    n as isize,
+                    false,
+                    a.as_ptr(),
+                    1,
+                    k as isize,
+                    w.as_ptr(),
+                    k as isize,
+                    1,
+                    0.0f32,
+                    1.0f32,
+                    false,
+                    false,
+                    false,
+                    gemm::Parallelism::Rayon(t),
+                );
+            }
+            best = best.min(start.elapsed().as_secs_f64());
+        }
+        std::hint::black_box(&c);
+        let flops = 2.0 * (m * k * n) as f64;
+        println!(
+            "gemm {name} M={m:<5} K={k:<5} N={n:<5} {t} thread(s): {:>7.1} GFLOP/s",
+            flops / best / 1e9
+        );
+    }
+}
+
 fn main() {
     let t = threads();
     rayon::ThreadPoolBuilder::new().num_threads(t).build_global().ok();
     fma_peak(t);
     bandwidth(t);
     gemm_rate(t);
+    gemm_rate_transposed(t);
 }

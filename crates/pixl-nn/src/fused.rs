@@ -4,11 +4,15 @@
 //! candle's CPU elementwise kernels run on one thread, and every bias add, GELU, ReLU, LayerScale
 //! and residual add would be a separate pass over memory. These ops do each step in one
 //! parallel pass, with the same arithmetic per element as the unfused ops (`x + b` then the
-//! activation, `x + y·γ`), so results are unchanged. On other devices (or dtypes) they fall
-//! back to the equivalent candle ops.
+//! activation, `x + y·γ`), so results are unchanged up to GELU's vectorised `erf` (within
+//! 3e-7·max(|x|, 1)). On other devices (or dtypes), or when gradients are needed, they fall back
+//! to the equivalent candle ops.
 //!
-//! Also [`attention_qkv`]: multi-head attention straight from fused qkv rows, with the head
-//! split and the head merge done as single parallel copies.
+//! Also: [`linear`] and [`conv1x1`], one GEMM each added in place to bias-filled outputs, the
+//! activation in place; [`attention_qkv`] / [`attention_qkv_rope`], multi-head attention straight
+//! from fused qkv rows, the head split (with 2D RoPE) and the head merge done as single parallel
+//! copies; [`to_channels_last`] / [`to_channels_first`] and [`add_scaled_channels_last`]
+//! (ConvNeXt's layer-scaled residual back in channels-first layout) as blocked parallel passes.
 //!
 //! Layouts: "rows" tensors are `(…, N)` with a per-column vector of length `N`; "channels"
 //! tensors are `(B, C, …)` with a per-channel vector of length `C`.
@@ -659,12 +663,12 @@ pub fn to_channels_last(xs: &Tensor) -> Result<Tensor> {
     Tensor::from_vec(out, (b, h, w, c), xs.device())
 }
 
-/// `(B, H, W, C)` → `(B, C, H, W)` contiguous (`permute(0, 3, 1, 2)`), one parallel blocked
-/// pass on the CPU in f32 without gradients, candle's permute and copy otherwise.
+/// `(B, H, W, C)` → `(B, C, H, W)` (`permute(0, 3, 1, 2)`): contiguous, by one parallel blocked
+/// pass, on the CPU in f32 without gradients; otherwise candle's permuted view (no copy).
 pub fn to_channels_first(xs: &Tensor) -> Result<Tensor> {
     let _t = crate::profile::span("layout copy");
     if !cpu_f32(xs) || crate::needs_grad(&[xs]) {
-        return xs.permute((0, 3, 1, 2))?.contiguous();
+        return xs.permute((0, 3, 1, 2));
     }
     let (b, h, w, c) = xs.dims4()?;
     let xs = xs.contiguous()?;

@@ -11,13 +11,15 @@
 //! - [`ops`] — softmax, bilinear resize, GELU.
 //! - [`rope`] — 2D rotary position embedding.
 //! - [`mlp`] — Linear–GELU–Linear.
-//! - [`conv3x3`] — 3×3 convolution as banded im2col + one matrix product, for inference.
+//! - [`conv3x3`] — 3×3 convolution as L2-sized im2col tiles, one GEMM each, for inference.
 //! - [`dwconv`] — depthwise k×k convolution with its own forward and backward kernels.
 //! - [`attention`] — multi-head scaled-dot-product attention (a fused, blocked CPU kernel for
 //!   inference).
-//! - [`fastmath`] — vectorisable `exp` and row softmax for the CPU kernels.
-//! - [`fused`] — parallel fused bias/activation/residual/norm passes and a fused `Linear`, for
-//!   inference only (the model layers call them when no gradient is needed).
+//! - [`fastmath`] — vectorisable `exp`, row softmax, `erf` and GELU for the CPU kernels.
+//! - [`fused`] — parallel fused bias/activation/residual/norm passes, a fused `Linear` and 1×1
+//!   convolution (GEMMs in place over bias-filled outputs), the qkv head split with RoPE, and
+//!   channels-first/last copies, for inference only (the model layers call them when no
+//!   gradient is needed).
 //! - [`profile`] — wall time by operation kind, off unless switched on.
 //! - [`testing`] — seeded test tensors and an f64 finite-difference gradient check.
 pub mod attention;
