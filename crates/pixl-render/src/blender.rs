@@ -23,7 +23,7 @@
 //!   `shadow_soft_size` = radius; spot `spot_size`, `spot_blend`; area `shape`, `size`, `size_y`,
 //!   power W, oriented with the native renderer's area axes; sun `energy` = strength W/m²,
 //!   `angle`). Blackbody colours are converted to RGB here ([`Color::rgb`]). Every light
-//!   object's `visible_camera` is set explicitly: on only for area lights with
+//!   object's `visible_camera` is set explicitly: on only for area, point and spot lights with
 //!   `visible_to_camera` (the native renderer's rule; Blender 4/5 default it to off too).
 //! - World: Background colour × strength, or an equirectangular Environment Texture rotated about
 //!   the up axis by `rotation_deg`.
@@ -172,10 +172,11 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
                 position,
                 power,
                 radius,
+                visible_to_camera,
                 ..
             } => json!({
                 "type": "POINT", "name": name, "matrix": at(*position), "color": color, "energy": power,
-                "radius": radius,
+                "radius": radius, "visible_camera": visible_to_camera,
             }),
             Light::Spot {
                 position,
@@ -183,10 +184,12 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
                 spot_size_deg,
                 blend,
                 radius,
+                visible_to_camera,
                 ..
             } => json!({
                 "type": "SPOT", "name": name, "matrix": at(*position), "color": color, "energy": power,
                 "radius": radius, "spot_size_deg": spot_size_deg, "blend": blend,
+                "visible_camera": visible_to_camera,
             }),
             Light::Area {
                 position,
@@ -410,7 +413,7 @@ def add_light(scene, l):
     if l["type"] == "SUN":
         data.angle = math.radians(l["angle_deg"])
     ob = bpy.data.objects.new(l["name"], data)
-    # Camera rays see a light only where the scene asks (area lights); set explicitly rather
+    # Camera rays see a light only where the scene asks (area, point, spot); set explicitly rather
     # than relying on Blender's default (off in 4/5).
     ob.visible_camera = bool(l.get("visible_camera", False))
     scene.collection.objects.link(ob)

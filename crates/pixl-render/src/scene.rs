@@ -28,8 +28,10 @@
 //! - Area light: `power` in W over area `A`, one-sided Lambertian emitter of radiance
 //!   `L = power / (π A)`; shapes `rectangle` (`size` × `size_y`), `square`, `disk` (diameter
 //!   `size`), `ellipse`. Camera rays look through it unless `visible_to_camera = true`
-//!   (Blender's Ray Visibility ▸ Camera, off by default in Blender 4/5); point, spot and sun
-//!   lights are never seen by the camera. Rays that scattered always see area lights.
+//!   (Blender's Ray Visibility ▸ Camera, off by default in Blender 4/5); the same key makes the
+//!   sphere of a point or spot light with a `radius` visible to the camera (radiance
+//!   `I / (π r²)`, times the spot's cone mask), as in Cycles. Sun lights are never seen by the
+//!   camera. Rays that scattered always see area and sphere lights.
 //! - Sun: `strength` is the irradiance in W/m² on a surface facing the sun; `angle_deg` its
 //!   angular diameter (a cone of radiance `strength / Ω` that mirrors and glass reflect; below
 //!   ~0.16°, e.g. 0, a delta light they do not).
@@ -439,6 +441,10 @@ pub enum Light {
         radius: f32,
         #[serde(default)]
         color: Color,
+        /// Whether camera rays see the light's sphere (Blender's Ray Visibility ▸ Camera; off by
+        /// default). Only a light with a `radius` has a sphere to see.
+        #[serde(default, skip_serializing_if = "is_false")]
+        visible_to_camera: bool,
     },
     Spot {
         #[serde(default)]
@@ -460,6 +466,9 @@ pub enum Light {
         radius: f32,
         #[serde(default)]
         color: Color,
+        /// As for point lights: camera rays see the sphere (masked by the cone) when asked.
+        #[serde(default, skip_serializing_if = "is_false")]
+        visible_to_camera: bool,
     },
     Area {
         #[serde(default)]
@@ -609,17 +618,26 @@ impl Light {
             }
             Ok(())
         };
+        let seen_sphere = |visible: bool, radius: f32| {
+            if visible && !(radius > 0.0) {
+                Err("visible_to_camera needs a radius > 0 (a light without one has no sphere to see)".to_string())
+            } else {
+                Ok(())
+            }
+        };
         self.color().check("color")?;
         match self {
             Light::Point {
                 position,
                 power,
                 radius,
+                visible_to_camera,
                 ..
             } => {
                 finite3(position, "position")?;
                 nonneg(*power, "power")?;
-                nonneg(*radius, "radius")
+                nonneg(*radius, "radius")?;
+                seen_sphere(*visible_to_camera, *radius)
             }
             Light::Spot {
                 position,
@@ -629,12 +647,14 @@ impl Light {
                 spot_size_deg,
                 blend,
                 radius,
+                visible_to_camera,
                 ..
             } => {
                 finite3(position, "position")?;
                 dir(direction, look_at, position)?;
                 nonneg(*power, "power")?;
                 nonneg(*radius, "radius")?;
+                seen_sphere(*visible_to_camera, *radius)?;
                 if !(spot_size_deg.is_finite() && *spot_size_deg > 0.0 && *spot_size_deg <= 180.0) {
                     return Err(format!("spot_size_deg {spot_size_deg} must be in (0, 180]"));
                 }

@@ -46,6 +46,8 @@ power = 50.0
 type = "point"
 position = [-1.0, 2.0, 1.0]
 power = 30.0
+radius = 0.2
+visible_to_camera = true
 
 [world]
 color = [0.1, 0.1, 0.1]
@@ -80,10 +82,13 @@ fn script_is_valid_python_with_exactly_the_passes() {
         .collect();
     assert_eq!(types, ["AREA", "SUN", "SPOT", "POINT"]);
     assert_eq!(desc["lights"][0]["energy"], 100.0);
-    // Camera visibility: the area light asked for it; the script sets it on every light
-    // object (off unless asked, Blender 4/5's default too).
+    // Camera visibility: the area and point lights asked for it; the script sets it on every
+    // light object (off unless asked, Blender 4/5's default too).
     assert_eq!(desc["lights"][0]["visible_camera"], true);
     assert!(desc["lights"][1].get("visible_camera").is_none());
+    assert_eq!(desc["lights"][2]["visible_camera"], false);
+    assert_eq!(desc["lights"][3]["visible_camera"], true);
+    assert_eq!(desc["lights"][3]["radius"], 0.2f32 as f64);
     assert!(text.contains("ob.visible_camera = bool(l.get(\"visible_camera\", False))"));
     assert_eq!(desc["objects"][0]["name"], "floor's quad");
     // Light frames: local −Z is the direction of travel (sun (0.3, −1, 0.2) normalised).

@@ -61,6 +61,7 @@ fn lambertian_plane_under_point_light_matches_inverse_square_cosine() {
         power: power as f32,
         radius: 0.0,
         color: Color::Rgb([1.0, 1.0, 1.0]),
+        visible_to_camera: false,
     });
     let film = render(&s, &opts(64, 4), &no_progress).unwrap();
     let dir = film.pass("DiffDir").unwrap();
@@ -486,6 +487,7 @@ fn sphere_light_lights_a_plane_like_a_point_and_glints_in_glass() {
         power: power as f32,
         radius,
         color: Color::Rgb([1.0, 1.0, 1.0]),
+        visible_to_camera: false,
     });
     let film = render(&s, &opts(128, 1), &no_progress).unwrap();
     let dir = film.pass("DiffDir").unwrap();
@@ -519,6 +521,7 @@ fn sphere_light_lights_a_plane_like_a_point_and_glints_in_glass() {
         power: 1000.0,
         radius: 3.0,
         color: Color::Rgb([1.0, 1.0, 1.0]),
+        visible_to_camera: false,
     });
     let film = render(&s, &opts(256, 1), &no_progress).unwrap();
     let gd = film.pass("GlossDir").unwrap();
@@ -664,4 +667,109 @@ fn area_lit_plane_converges_faster_with_the_sobol_sampler() {
         at_256[0],
         at_256[1]
     );
+}
+
+#[test]
+fn sphere_light_in_view_is_seen_by_the_camera_only_when_asked() {
+    // A point light of radius r = 0.5 m, 5 m in front of a 32×32, 30° camera at the origin, over a
+    // world of radiance w. As in Cycles it is a sphere of radiance L = I / (π r²), I = P / 4π; with
+    // P = 2π² · colour that is L = 2 · colour. Its silhouette on the image plane is the circle of
+    // radius R = f · tan θ, sin θ = r / d (the cone it subtends, cut by the plane), centred on the
+    // principal point. Camera visibility on: pixels wholly inside the circle have Emit = L and
+    // Combined = L + w (lights do not occlude), pixels wholly outside Emit = 0, and the image sum of
+    // Emit is L · πR² (the area of the circle in pixels; straddling pixels hold the covered
+    // fraction). Off (Blender's default): Emit = 0 everywhere. A spot light of the same power and
+    // radius is the same sphere times its cone mask: facing the camera (mask 1) it looks the
+    // same, facing away (mask 0) it is not seen. Nothing is lit (no surfaces): every lobe pass is 0.
+    let (n, fov, d, r) = (32usize, 30.0f64, 5.0f64, 0.5f64);
+    let color = [1.0f32, 0.5, 0.25];
+    let w = [0.05f32, 0.1, 0.15];
+    let power = 2.0 * PI * PI;
+    let radiance = power / (4.0 * PI * PI * r * r);
+    let scene = |light: Light| {
+        let mut s = Scene::new(Camera::new(n as u32, n as u32, fov as f32));
+        s.lights.push(light);
+        s.world = Some(World {
+            color: Color::Rgb(w),
+            strength: 1.0,
+            image: None,
+            rotation_deg: 0.0,
+        });
+        s
+    };
+    let point = |visible: bool| Light::Point {
+        name: String::new(),
+        position: [0.0, 0.0, -d as f32],
+        power: power as f32,
+        radius: r as f32,
+        color: Color::Rgb(color),
+        visible_to_camera: visible,
+    };
+    let spot = |towards: f32| Light::Spot {
+        name: String::new(),
+        position: [0.0, 0.0, -d as f32],
+        direction: Some([0.0, 0.0, towards]),
+        look_at: None,
+        power: power as f32,
+        spot_size_deg: 60.0,
+        blend: 0.0,
+        radius: r as f32,
+        color: Color::Rgb(color),
+        visible_to_camera: true,
+    };
+    let focal = 0.5 * n as f64 / (0.5 * fov.to_radians()).tan();
+    let big_r = focal * (r / d).asin().tan();
+    let c = 0.5 * n as f64;
+    for (light, seen) in [
+        (point(false), 0.0),
+        (point(true), 1.0),
+        (spot(1.0), 1.0),
+        (spot(-1.0), 0.0),
+    ] {
+        let what = format!("{light:?}");
+        let film = render(&scene(light), &opts(64, 2), &no_progress).unwrap();
+        let (emit, comb) = (film.pass("Emit").unwrap(), film.pass("Combined").unwrap());
+        let (mut sum, mut inside, mut outside) = (0.0f64, 0, 0);
+        for y in 0..n {
+            for x in 0..n {
+                // Nearest and farthest points of the pixel square from the circle's centre.
+                let (x0, y0) = (x as f64 - c, y as f64 - c);
+                let near = |a: f64| {
+                    if a > 0.0 {
+                        a
+                    } else if a + 1.0 < 0.0 {
+                        -(a + 1.0)
+                    } else {
+                        0.0
+                    }
+                };
+                let far = |a: f64| a.abs().max((a + 1.0).abs());
+                let (dn, df) = (near(x0).hypot(near(y0)), far(x0).hypot(far(y0)));
+                let e = emit.get(x, y, 0) as f64;
+                sum += e;
+                if df < big_r {
+                    inside += 1;
+                    let want = seen * radiance;
+                    assert!(
+                        (e - want).abs() < 1e-5 * radiance,
+                        "{what}: pixel ({x}, {y}) Emit {e} vs {want}"
+                    );
+                    for ch in 0..3 {
+                        let want = seen * radiance * color[ch] as f64 + w[ch] as f64;
+                        let got = comb.get(x, y, ch) as f64;
+                        assert!((got - want).abs() < 1e-5 * want, "{what}: Combined {got} vs {want}");
+                    }
+                } else if dn > big_r {
+                    outside += 1;
+                    assert_eq!(e, 0.0, "{what}: pixel ({x}, {y}) outside the sphere");
+                }
+            }
+        }
+        assert!(inside > 60 && outside > 800, "inside {inside}, outside {outside}");
+        let want = seen * radiance * PI * big_r * big_r;
+        assert!((sum - want).abs() <= 0.01 * want, "{what}: Emit sum {sum} vs {want}");
+        for p in ["DiffDir", "DiffInd", "GlossDir", "GlossInd", "TransDir", "TransInd"] {
+            assert!(film.pass(p).unwrap().data.iter().all(|v| *v == 0.0), "{p}");
+        }
+    }
 }
