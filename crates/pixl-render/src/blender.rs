@@ -15,8 +15,9 @@
 //! - Axes: our +Y-up world maps to Blender's +Z-up by `C: (x, y, z) ↦ (x, −z, y)`; every
 //!   object-to-world matrix `M` becomes `C·M` (vertices are kept in our object space).
 //! - Camera: same frame (looks down local −Z, +Y up), `sensor_fit = VERTICAL`, lens from the
-//!   vertical FOV, principal point offsets as `shift_x/shift_y`, pixel filter box of width 1
-//!   (our renderer's uniform in-pixel jitter).
+//!   vertical FOV (24 mm sensor height), principal point offsets as `shift_x/shift_y`, pixel
+//!   filter box of width 1 (our renderer's uniform in-pixel jitter); depth of field as
+//!   `dof.use_dof`, `focus_distance`, `aperture_fstop` (round aperture), off without `dof`.
 //! - Materials: Principled BSDF with the same inputs; colour textures sRGB, roughness/metallic
 //!   textures Non-Color. UVs flip to Blender's `v = 0` at the bottom.
 //! - Lights: Blender's own units, one to one (point/spot `energy` = power W and
@@ -123,6 +124,10 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
         "width": cam.width, "height": cam.height, "fov_y_deg": cam.fov_y(),
         "shift_x": (0.5 * w - cx) / maxdim, "shift_y": (cy - 0.5 * h) / maxdim,
         "matrix": frame_matrix(right, up, back, o),
+        "dof": match &cam.dof {
+            Some(d) => json!({ "focus_distance": d.focus_distance, "aperture_fstop": d.aperture_fstop }),
+            None => Value::Null,
+        },
     });
     let mut textures = 0;
     let mut objects = Vec::new();
@@ -430,6 +435,13 @@ def add_camera(scene, c):
     data.shift_y = c["shift_y"]
     data.clip_start = 1e-3
     data.clip_end = 1e5
+    dof = c.get("dof")
+    data.dof.use_dof = dof is not None
+    if dof is not None:
+        data.dof.focus_distance = dof["focus_distance"]
+        data.dof.aperture_fstop = dof["aperture_fstop"]
+        data.dof.aperture_blades = 0
+        data.dof.aperture_ratio = 1.0
     ob = bpy.data.objects.new("Camera", data)
     scene.collection.objects.link(ob)
     ob.matrix_world = Y_UP_TO_Z_UP @ matrix(c["matrix"])

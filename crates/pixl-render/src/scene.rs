@@ -37,6 +37,9 @@
 //!   ~0.16°, e.g. 0, a delta light they do not).
 //! - Emission (materials): radiance `emission_strength × emission_color` (W/m²/sr).
 //! - World: radiance `strength × color` (or × the image's texel).
+//! - Camera depth of field (`dof = { focus_distance = 2.0, aperture_fstop = 2.8 }`, Blender's
+//!   names; off when absent): a thin lens whose focal length is that of Blender's camera with a
+//!   24 mm sensor height, aperture radius `lens / (2 · f-stop)` as in Cycles (see [`Dof`]).
 //!
 //! Colours are linear Rec.709 RGB triples (`[1.0, 0.9, 0.8]`) or a blackbody temperature
 //! (`{ kelvin = 3200 }`, see [`crate::color::blackbody`]).
@@ -102,8 +105,8 @@ fn default_version() -> u32 {
     SCENE_VERSION
 }
 
-/// A pinhole camera. Give exactly one of `fov_y_deg` and `focal_px`, and either
-/// `position` + `look_at` (+ `up`) or `matrix`.
+/// A pinhole camera, or a thin lens with `dof`. Give exactly one of `fov_y_deg` and `focal_px`,
+/// and either `position` + `look_at` (+ `up`) or `matrix`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Camera {
@@ -133,6 +136,26 @@ pub struct Camera {
     /// camera's +X, +Y, +Z axes. Overrides `position` / `look_at` / `up` when given.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub matrix: Option<[[f32; 4]; 4]>,
+    /// Thin-lens depth of field (Blender's camera ▸ Depth of Field). Absent (the default): a
+    /// pinhole, everything sharp.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dof: Option<Dof>,
+}
+
+/// Thin-lens depth of field, named as Blender's camera DOF settings (the table's presence is
+/// Blender's `use_dof`). The lens is the one the Blender bridge gives the camera — a 24 mm high
+/// sensor, so focal length `lens = 12 mm / tan(fov_y / 2)` — and, as in Cycles, the aperture is
+/// a disk of radius `lens / (2 · aperture_fstop)` (lens in metres) centred on the camera
+/// position, in the plane of the image. Points at `focus_distance` along the viewing axis are
+/// sharp; a point at depth `z` spreads over a disk of radius `f · A · |1/focus_distance − 1/z|`
+/// pixels (`f` the focal length in pixels, `A` the aperture radius).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Dof {
+    /// Distance from the camera to the plane in focus, along the viewing axis (metres).
+    pub focus_distance: f32,
+    /// F-number: the aperture's diameter is the focal length over it.
+    pub aperture_fstop: f32,
 }
 
 fn default_up() -> [f32; 3] {
@@ -152,6 +175,21 @@ impl Camera {
             look_at: None,
             up: default_up(),
             matrix: None,
+            dof: None,
+        }
+    }
+
+    /// The focal length in millimetres of the camera Blender gets (24 mm sensor height).
+    pub fn lens_mm(&self) -> f32 {
+        12.0 / (0.5 * self.fov_y().to_radians()).tan()
+    }
+
+    /// Radius of the thin lens's aperture in metres (0 without depth of field): Cycles'
+    /// `lens · 1e-3 / (2 · aperture_fstop)`.
+    pub fn aperture_radius(&self) -> f32 {
+        match &self.dof {
+            Some(d) => self.lens_mm() * 1e-3 / (2.0 * d.aperture_fstop),
+            None => 0.0,
         }
     }
 
@@ -908,6 +946,20 @@ impl Scene {
                 return Err(bad(format!("camera: focal_px {f} must be positive")))
             }
             _ => {}
+        }
+        if let Some(d) = &c.dof {
+            if !(d.focus_distance.is_finite() && d.focus_distance > 0.0) {
+                return Err(bad(format!(
+                    "camera: dof focus_distance {} must be positive",
+                    d.focus_distance
+                )));
+            }
+            if !(d.aperture_fstop.is_finite() && d.aperture_fstop > 0.0) {
+                return Err(bad(format!(
+                    "camera: dof aperture_fstop {} must be positive",
+                    d.aperture_fstop
+                )));
+            }
         }
         if let Some(m) = c.matrix {
             if m.iter().flatten().any(|v| !v.is_finite()) {

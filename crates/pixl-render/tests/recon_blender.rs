@@ -11,6 +11,7 @@ height = 24
 fov_y_deg = 40.0
 position = [0.0, 1.0, 4.0]
 look_at = [0.0, 0.5, 0.0]
+dof = { focus_distance = 3.5, aperture_fstop = 2.8 }
 
 [[objects]]
 name = "floor's quad"
@@ -91,6 +92,10 @@ fn script_is_valid_python_with_exactly_the_passes() {
     assert_eq!(desc["lights"][3]["radius"], 0.2f32 as f64);
     assert!(text.contains("ob.visible_camera = bool(l.get(\"visible_camera\", False))"));
     assert_eq!(desc["objects"][0]["name"], "floor's quad");
+    // Depth of field: Blender's own settings, switched on only when the scene has them.
+    assert_eq!(desc["camera"]["dof"]["focus_distance"], 3.5);
+    assert_eq!(desc["camera"]["dof"]["aperture_fstop"], 2.8f32 as f64);
+    assert!(text.contains("data.dof.use_dof = dof is not None"));
     // Light frames: local −Z is the direction of travel (sun (0.3, −1, 0.2) normalised).
     let m = &desc["lights"][1]["matrix"];
     let d = [0.3f64, -1.0, 0.2];

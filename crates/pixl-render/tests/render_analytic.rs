@@ -773,3 +773,70 @@ fn sphere_light_in_view_is_seen_by_the_camera_only_when_asked() {
         }
     }
 }
+
+#[test]
+fn thin_lens_keeps_the_focus_plane_sharp_and_blurs_by_the_circle_of_confusion() {
+    // A 64×32, 20° camera at the origin looking down −Z at the left half of a plane of emission 1
+    // (x < 0, depth z = 4 m; its edge projects onto column 32). Depth of field, f/0.5: the lens
+    // Blender gets (24 mm sensor height) is `lens = 12 mm / tan 10°`, so the aperture radius is
+    // A = lens / (2 · 0.5) (Cycles' `lens·1e-3 / (2 fstop)`). A lens point L sends the ray of image
+    // point p to where the pinhole ray of p crosses the plane in focus (depth F); it meets the
+    // plane at depth z at the pinhole image p − f·L·(1/F − 1/z) (f = focal length in pixels). So
+    // with F = z the emitter's edge stays a sharp step; with F = 1 m it spreads over a disk of
+    // radius r = f·A·(1/F − 1/z) ≈ 4.6 px: a pixel's Emit is the mean over its width of the
+    // fraction of that disk on the bright side, seg(s) = (acos(s/r) − (s/r)·√(1 − (s/r)²)) / π at
+    // offset s from the edge. Checked per column on the mean of the 32 rows (Sobol, 128 spp).
+    let (w, h, fov, z, fstop) = (64u32, 32u32, 20.0f64, 4.0f64, 0.5f64);
+    let focal = 0.5 * h as f64 / (0.5 * fov.to_radians()).tan();
+    let aperture = 12e-3 / (0.5 * fov.to_radians()).tan() / (2.0 * fstop);
+    let scene = |focus: f64| {
+        let mut cam = Camera::new(w, h, fov as f32);
+        cam.dof = Some(pixl_render::scene::Dof {
+            focus_distance: focus as f32,
+            aperture_fstop: fstop as f32,
+        });
+        let mut s = Scene::new(cam);
+        s.objects.push(Object {
+            name: "half".into(),
+            shape: Shape::Quad { size: [10.0, 10.0] },
+            transform: Transform {
+                translate: [-5.0, 0.0, -z as f32],
+                ..Default::default()
+            },
+            material: Material::emissive([1.0, 1.0, 1.0], 1.0),
+        });
+        s
+    };
+    let seg = |s: f64, r: f64| {
+        if r == 0.0 {
+            return if s < 0.0 { 1.0 } else { 0.0 };
+        }
+        let q = (s / r).clamp(-1.0, 1.0);
+        (q.acos() - q * (1.0 - q * q).sqrt()) / PI
+    };
+    for focus in [z, 1.0] {
+        let r = focal * aperture * (1.0 / focus - 1.0 / z);
+        let film = render(&scene(focus), &opts(128, 0), &no_progress).unwrap();
+        let emit = film.pass("Emit").unwrap();
+        let mut blurred = 0;
+        for x in 0..w as usize {
+            let got = (0..h as usize).map(|y| emit.get(x, y, 0) as f64).sum::<f64>() / h as f64;
+            let m = 2000;
+            let want = (0..m)
+                .map(|i| seg(x as f64 + (i as f64 + 0.5) / m as f64 - 0.5 * w as f64, r))
+                .sum::<f64>()
+                / m as f64;
+            assert!(
+                (got - want).abs() < 0.03,
+                "focus {focus} m (blur radius {r:.2} px): column {x} Emit {got} vs {want}"
+            );
+            blurred += (want > 0.02 && want < 0.98) as usize;
+        }
+        // Sharp: only the edge's own columns are partly lit; out of focus, ~2r columns.
+        if focus == z {
+            assert!(blurred == 0, "{blurred} blurred columns in focus");
+        } else {
+            assert!(blurred >= 8, "{blurred} blurred columns");
+        }
+    }
+}
