@@ -7,6 +7,7 @@
 //! inverse transpose of the object matrix.
 use crate::bvh::{Bvh, Hit, Ray, RayPack, Tri};
 use crate::error::{RenderError, Result};
+use crate::material::glass_albedo::GlassTables;
 use crate::material::Coat;
 use crate::math::V3;
 use crate::mesh::Mesh;
@@ -43,6 +44,9 @@ pub struct MaterialData {
     /// The dielectric specular coat, from the scene material's IOR and specular IOR level: must
     /// be `Coat::new(ior, level)` ([`resolve_material`] builds it; rebuild it if `ior` changes).
     pub coat: Coat,
+    /// Albedo tables of the rough glass's energy compensation, for materials that can have
+    /// rough glass (transmission, roughness and an IOR above 1): [`GlassTables::new`] of `ior`.
+    pub glass: Option<std::sync::Arc<GlassTables>>,
 }
 
 pub struct Geometry {
@@ -196,6 +200,8 @@ pub fn resolve_material(scene: &Scene, m: &crate::scene::Material) -> Result<Mat
         ior: m.ior,
         emission: V3::from_arr(m.emission_color.rgb()) * m.emission_strength,
         coat: Coat::new(m.ior, m.specular_ior_level),
+        glass: (m.transmission > 0.0 && m.metallic < 1.0 && m.roughness > 0.0 && m.ior > 1.001)
+            .then(|| std::sync::Arc::new(GlassTables::new(m.ior))),
     })
 }
 

@@ -19,10 +19,11 @@
 //!   `J = η² |wi·h| / (wo·h + η wi·h)²` the refraction Jacobian `dω_h/dω_i`. Sampling picks a
 //!   visible normal (`pdf_h = G1(wo) (wo·h) D(h) / cos θo`), then reflects with probability `F`,
 //!   else refracts, so every sample weighs `G2 / G1(wo)` (× the tint); as the roughness goes to
-//!   0 this becomes the smooth case. Single scattering: the energy the masking term removes is
-//!   not returned (Cycles' multiscatter glass does return it; at roughness 0.5 the difference is
-//!   a few per cent). Radiance is not scaled by `η²` at refraction, as Cycles does not for
-//!   camera paths. Then `w ← w · (1 − transmission)`.
+//!   0 this becomes the smooth case. Energy compensation as in Cycles' multiscatter glass: both
+//!   parts are scaled by `1 / E(r, μo)`, `E` the single-scattering albedo of the clear glass on
+//!   the side `wo` is on ([`glass_albedo`], tables per material), so a clear glass reflects and
+//!   transmits all the light it gets, rough or smooth. Radiance is not scaled by `η²` at
+//!   refraction, as Cycles does not for camera paths. Then `w ← w · (1 − transmission)`.
 //! - **Dielectric specular** (weight `w`): GGX with the exact dielectric Fresnel of
 //!   `η = ior_from_F0(F0)`, `F0 = ((ior−1)/(ior+1))² · 2 · specular_ior_level` (the real Fresnel
 //!   curve rescaled to start at `F0`; for level 0.5, `η = ior`). Absent when `F0 = 0`.
@@ -56,6 +57,7 @@ use std::f32::consts::FRAC_1_PI;
 
 pub mod ggx_albedo;
 mod ggx_tables;
+pub mod glass_albedo;
 pub use ggx_albedo::{f0_from_ior, ior_from_f0};
 
 /// Which pass family a lobe belongs to.
@@ -110,8 +112,10 @@ pub struct Bsdf {
     spec_w: V3,
     spec_eta: f32,
     trans_w: f32,
-    /// Whether the transmission closure is rough (GGX glass) rather than a delta.
+    /// Whether the transmission closure is rough (GGX glass) rather than a delta, and its
+    /// energy compensation `1 / E(r, μo)` (1 without tables).
     rough_trans: bool,
+    glass_scale: f32,
     tint: V3,
     /// Relative IOR across the interface in the direction of travel into the surface.
     eta: f32,
@@ -294,6 +298,13 @@ impl Bsdf {
         // IOR 1 refracts straight through whatever the roughness (the microfacet form has no
         // refracted lobe there): smooth, as below 1e-3 from it.
         let rough_trans = trans_w > 0.0 && roughness > 0.0 && m.ior > 1.001;
+        let glass_scale = match (&m.glass, rough_trans) {
+            (Some(t), true) => {
+                let side = if entering { &t.entering } else { &t.leaving };
+                1.0 / side.eval(roughness, cos_o).max(0.05)
+            }
+            _ => 1.0,
+        };
         Bsdf {
             lambda_o: ggx_lambda(wo_local, alpha),
             p_spec_g1_o: p_spec * ggx_g1(wo_local, alpha),
@@ -311,6 +322,7 @@ impl Bsdf {
             spec_eta,
             trans_w,
             rough_trans,
+            glass_scale,
             tint,
             eta,
             p_diff,
@@ -380,7 +392,7 @@ impl Bsdf {
         let d = ggx_d(h, self.alpha);
         let g1_o = 1.0 / (1.0 + self.lambda_o);
         let g2 = 1.0 / (1.0 + self.lambda_o + ggx_lambda(wi, self.alpha));
-        out.glossy += V3::splat(self.trans_w * fr * d * g2 / self.four_cos_o);
+        out.glossy += V3::splat(self.trans_w * self.glass_scale * fr * d * g2 / self.four_cos_o);
         out.pdf += self.p_trans * fr * g1_o * d / self.four_cos_o;
     }
 
@@ -406,7 +418,7 @@ impl Bsdf {
         let g1_o = 1.0 / (1.0 + self.lambda_o);
         let g2 = 1.0 / (1.0 + self.lambda_o + ggx_lambda(wi, self.alpha));
         let t = (1.0 - fr) * d * cos_o * jacobian / wo.z;
-        out.transmission = self.tint * (self.trans_w * t * g2);
+        out.transmission = self.tint * (self.trans_w * self.glass_scale * t * g2);
         out.pdf += self.p_trans * t * g1_o;
     }
 
@@ -544,6 +556,7 @@ mod tests {
             ior: 1.5,
             emission: V3::ZERO,
             coat: Coat::new(1.5, specular_level),
+            glass: None,
         }
     }
 
@@ -612,6 +625,7 @@ mod tests {
     fn glass(base: f32, roughness: f32, transmission: f32) -> MaterialData {
         MaterialData {
             transmission,
+            glass: Some(std::sync::Arc::new(glass_albedo::GlassTables::new(1.5))),
             ..material(base, roughness, 0.0, 0.5)
         }
     }
@@ -672,11 +686,18 @@ mod tests {
         // sphere and the mean weight of `sample` (a visible normal, then reflect or refract; its
         // weight uses the refraction Jacobian and the pdf `eval` reports, so a wrong Jacobian,
         // pdf or half vector shows as a mismatch). With base 1 (no tint) every microfacet event
-        // keeps all the energy (F + (1 − F) = 1), so the total lies between 1 minus the single-
-        // scattering masking loss and 1: measured 0.1–2.5 % at roughness 0.3 and 2–24 % at 0.6
-        // (most from inside near total internal reflection, where Cycles' multiscatter glass
-        // returns it), bounded here by 3 % and 25 %.
-        for (rough, max_loss) in [(0.3f32, 0.03f64), (0.6, 0.25)] {
+        // keeps all the energy (F + (1 − F) = 1), so without the energy compensation the total
+        // lies between 1 minus the single-scattering masking loss and 1 (measured 0.1–2.5 % at
+        // roughness 0.3 and 2–24 % at 0.6, most from inside near total internal reflection),
+        // bounded here by 3 % and 25 %; with it (the material's tables, `glass_albedo`, made by
+        // a different rule: VNDF strata of the sampler, on a grid, interpolated) the total is 1
+        // within 1 %: a clear glass is a white furnace, as the smooth glass.
+        for (rough, max_loss, tables) in [
+            (0.3f32, 0.03f64, false),
+            (0.6, 0.25, false),
+            (0.3, 0.01, true),
+            (0.6, 0.01, true),
+        ] {
             for (inside, mu) in [(false, 0.9f32), (false, 0.4), (true, 0.9), (true, 0.6)] {
                 let mut hit = flat_hit();
                 let wo = view(mu);
@@ -685,11 +706,15 @@ mod tests {
                     hit.ng = -hit.ng;
                     hit.ns = -hit.ns;
                 }
-                let b = Bsdf::new(&glass(1.0, rough, 1.0), &hit, wo);
+                let mut m = glass(1.0, rough, 1.0);
+                if !tables {
+                    m.glass = None;
+                }
+                let b = Bsdf::new(&m, &hit, wo);
                 assert!(b.has_smooth() && b.rough_trans);
                 let q = integrate_sphere(&b);
                 let m = mean_weights(&b, 400);
-                let what = format!("rough {rough}, inside {inside}, mu {mu}");
+                let what = format!("rough {rough}, inside {inside}, mu {mu}, tables {tables}");
                 assert_eq!(q[0], 0.0, "{what}: no diffuse lobe");
                 for k in 1..3 {
                     assert!(
@@ -700,7 +725,8 @@ mod tests {
                     );
                 }
                 let total = q[1] + q[2];
-                assert!(total <= 1.0 + 2e-3 && total >= 1.0 - max_loss, "{what}: albedo {total}");
+                let hi = if tables { 1.0 + max_loss } else { 1.0 + 2e-3 };
+                assert!(total <= hi && total >= 1.0 - max_loss, "{what}: albedo {total}");
             }
         }
     }

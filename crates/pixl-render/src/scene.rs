@@ -79,9 +79,6 @@ use crate::error::{RenderError, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-/// Glass roughness above which [`Scene::approximations`] notes the single-scattering loss.
-pub const ROUGH_GLASS_NOTE: f32 = 0.5;
-
 /// Current scene-format version (written by [`Scene::save`]).
 pub const SCENE_VERSION: u32 = 1;
 
@@ -889,29 +886,6 @@ impl Scene {
         self.validate_at(Path::new("<scene>"))
     }
 
-    /// What the native renderer draws differently from Cycles in this scene, one sentence per
-    /// object (empty when nothing): today only very rough glass (roughness above 0.5), which is
-    /// rendered with single-scattering GGX and so loses the light that Cycles' multiscatter
-    /// glass returns (see [`crate::material`]).
-    pub fn approximations(&self) -> Vec<String> {
-        self.objects
-            .iter()
-            .enumerate()
-            .filter(|(_, o)| {
-                let m = &o.material;
-                // (A roughness texture multiplies `roughness`, so it can only lower it.)
-                m.transmission > 0.0 && m.metallic < 1.0 && m.roughness > ROUGH_GLASS_NOTE
-            })
-            .map(|(i, o)| {
-                let name = if o.name.is_empty() { format!("object {i}") } else { format!("object {:?}", o.name) };
-                format!(
-                    "{name}: glass of roughness {} is rendered single-scattering here: darker than in Cycles (up to ~25 % of the light per interaction at roughness 0.6)",
-                    o.material.roughness
-                )
-            })
-            .collect()
-    }
-
     /// Checks that every referenced file (meshes, textures, world image) exists.
     pub fn validate_files(&self) -> Result<()> {
         self.validate_files_at(Path::new("<scene>"))
@@ -1119,36 +1093,6 @@ pub(crate) fn normalize(a: [f32; 3]) -> [f32; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn only_very_rough_glass_is_reported_as_an_approximation() {
-        let scene = |glass: &str| {
-            Scene::from_toml_str(&format!(
-                "[camera]\nwidth = 4\nheight = 4\nfov_y_deg = 40.0\n\n\
-                 [[objects]]\nname = \"floor\"\nshape = {{ type = \"quad\", size = [1.0, 1.0] }}\n\
-                 material = {{ roughness = 0.5 }}\n\n\
-                 [[objects]]\nshape = {{ type = \"sphere\", radius = 0.5 }}\nmaterial = {{ {glass} }}\n"
-            ))
-            .unwrap()
-        };
-        // Very rough glass: one note naming the (unnamed, second) object and its values.
-        let notes = scene("transmission = 1.0, roughness = 0.7").approximations();
-        assert_eq!(notes.len(), 1, "{notes:?}");
-        assert!(
-            notes[0].starts_with("object 1:") && notes[0].contains("roughness 0.7"),
-            "{notes:?}"
-        );
-        // Smooth and moderately rough glass (GGX), rough opaque surfaces and rough metal with a
-        // transmission value: nothing.
-        for m in [
-            "transmission = 1.0, roughness = 0.0",
-            "transmission = 1.0, roughness = 0.3",
-            "roughness = 0.8",
-            "transmission = 1.0, metallic = 1.0, roughness = 0.4",
-        ] {
-            assert!(scene(m).approximations().is_empty(), "{m}");
-        }
-    }
 
     const EXAMPLE: &str = r#"
 [camera]
