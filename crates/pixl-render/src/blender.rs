@@ -19,7 +19,7 @@
 //!   filter box of width 1 (our renderer's uniform in-pixel jitter); depth of field as
 //!   `dof.use_dof`, `focus_distance`, `aperture_fstop` (round aperture), off without `dof`.
 //! - Materials: Principled BSDF with the same inputs; colour textures sRGB, roughness/metallic
-//!   textures Non-Color. UVs flip to Blender's `v = 0` at the bottom.
+//!   textures Non-Color; a normal map through a tangent-space Normal Map node (strength 1). UVs flip to Blender's `v = 0` at the bottom.
 //! - Lights: Blender's own units, one to one (point/spot `energy` = power W and
 //!   `shadow_soft_size` = radius; spot `spot_size`, `spot_blend`; area `shape`, `size`, `size_y`,
 //!   power W, oriented with the native renderer's area axes; sun `energy` = strength W/m²,
@@ -146,6 +146,7 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
             "base_color": m.base_color.rgb(), "base_color_texture": tex(&m.base_color_texture)?,
             "roughness": m.roughness, "roughness_texture": tex(&m.roughness_texture)?,
             "metallic": m.metallic, "metallic_texture": tex(&m.metallic_texture)?,
+            "normal_texture": tex(&m.normal_texture)?,
             "transmission": m.transmission,
             "specular_ior_level": m.specular_ior_level, "ior": m.ior,
             "emission_color": m.emission_color.rgb(), "emission_strength": m.emission_strength,
@@ -380,6 +381,13 @@ def make_material(name, m):
         if m.get(key):
             node = image_node(nt, m[key], non_color)
             nt.links.new(node.outputs["Color"], bsdf.inputs[socket])
+    if m.get("normal_texture"):
+        node = image_node(nt, m["normal_texture"], True)
+        nmap = nt.nodes.new("ShaderNodeNormalMap")
+        nmap.space = "TANGENT"
+        nmap.inputs["Strength"].default_value = 1.0
+        nt.links.new(node.outputs["Color"], nmap.inputs["Color"])
+        nt.links.new(nmap.outputs["Normal"], bsdf.inputs["Normal"])
     return mat
 
 

@@ -38,6 +38,8 @@ pub struct MaterialData {
     pub roughness_tex: Option<Texture>,
     pub metallic: f32,
     pub metallic_tex: Option<Texture>,
+    /// Tangent-space normal map ([`Geometry::mapped_normal`]).
+    pub normal_tex: Option<Texture>,
     pub transmission: f32,
     pub ior: f32,
     pub emission: V3,
@@ -196,6 +198,10 @@ pub fn resolve_material(scene: &Scene, m: &crate::scene::Material) -> Result<Mat
         roughness_tex: load(&m.roughness_texture, false)?,
         metallic: m.metallic,
         metallic_tex: load(&m.metallic_texture, false)?,
+        normal_tex: match &m.normal_texture {
+            Some(p) => Some(Texture::load_data(&scene.resolve(p))?),
+            None => None,
+        },
         transmission: m.transmission,
         ior: m.ior,
         emission: V3::from_arr(m.emission_color.rgb()) * m.emission_strength,
@@ -370,6 +376,47 @@ impl Geometry {
             prim,
             t,
         }
+    }
+
+    /// `hit` with its shading normal bent by the material's normal map (Blender's Normal Map
+    /// node, tangent space, strength 1; see [`crate::scene::Material::normal_texture`]): the
+    /// tangent is the triangle's `∂p/∂u` and the bitangent `±N × T`, its sign that of Blender's
+    /// `∂p/∂v` (our `−∂p/∂v`, as `v` is flipped), as MikkTSpace gives for a triangle on its
+    /// own. Unchanged without a map, or where the triangle's UVs are degenerate.
+    #[inline(always)]
+    pub fn mapped_normal(&self, m: &MaterialData, hit: SurfaceHit) -> SurfaceHit {
+        match &m.normal_tex {
+            None => hit,
+            Some(tex) => self.bend_normal(tex, hit),
+        }
+    }
+
+    #[inline(never)]
+    fn bend_normal(&self, tex: &Texture, hit: SurfaceHit) -> SurfaceHit {
+        let (tri, a) = (&self.tris[hit.prim as usize], &self.attrs[hit.prim as usize]);
+        let (dp1, dp2) = (tri.p1 - tri.p0, tri.p2 - tri.p0);
+        let (du1, dv1) = (a.uv[1][0] - a.uv[0][0], a.uv[1][1] - a.uv[0][1]);
+        let (du2, dv2) = (a.uv[2][0] - a.uv[0][0], a.uv[2][1] - a.uv[0][1]);
+        let det = du1 * dv2 - du2 * dv1;
+        if !(det.abs() > 1e-12) {
+            return hit;
+        }
+        let dpdu = (dp1 * dv2 - dp2 * dv1) / det;
+        let dpdv = (dp2 * du1 - dp1 * du2) / det;
+        let n = hit.ns;
+        let t = (dpdu - n * n.dot(dpdu)).normalize();
+        let b = n.cross(t);
+        if !(t.is_finite() && b.is_finite()) {
+            return hit;
+        }
+        // Blender's v grows towards the texture's top row: along −∂p/∂v here.
+        let b = if b.dot(dpdv) > 0.0 { -b } else { b };
+        let c = tex.sample(hit.uv[0], hit.uv[1]) * 2.0 - V3::ONE;
+        let mapped = (t * c.x + b * c.y + n * c.z).normalize();
+        if !mapped.is_finite() || mapped.is_zero() {
+            return hit;
+        }
+        SurfaceHit { ns: mapped, ..hit }
     }
 
     pub fn occluded(&self, ray: &Ray, tmin: f32, tmax: f32) -> bool {

@@ -350,6 +350,7 @@ impl Renderer {
                     continue;
                 }
                 path.depth += 1;
+                let h2 = geom.mapped_normal(m2, h2);
                 path.hit = h2;
                 path.bsdf = Bsdf::new(m2, &h2, -ray.d);
                 if path.bsdf.is_black() {
@@ -382,10 +383,12 @@ impl Renderer {
             return None;
         };
         s.depth = self.camera.z_depth(hit.p);
-        s.normal = hit.ns;
-        s.normal_n = 1;
         let geom = &self.geom;
         let mat = &geom.materials[geom.attrs[hit.prim as usize].material as usize];
+        // The Normal pass holds the shading normal, bent by a normal map (as Cycles').
+        let hit = geom.mapped_normal(mat, hit);
+        s.normal = hit.ns;
+        s.normal_n = 1;
         if mat.emission.max_comp() > 0.0 {
             s.emit += mat.emission;
             s.combined += mat.emission;

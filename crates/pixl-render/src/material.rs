@@ -552,6 +552,7 @@ mod tests {
             roughness_tex: None,
             metallic,
             metallic_tex: None,
+            normal_tex: None,
             transmission: 0.0,
             ior: 1.5,
             emission: V3::ZERO,

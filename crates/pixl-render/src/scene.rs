@@ -342,6 +342,14 @@ pub struct Material {
     pub metallic: f32,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub metallic_texture: Option<PathBuf>,
+    /// A tangent-space normal map, as Blender's Normal Map node (strength 1) feeding the
+    /// Principled BSDF's Normal: texel `c` (read as stored, "Non-Color") is the normal
+    /// `2c − 1` in the frame (tangent `T`, bitangent `B`, shading normal `N`), `T` along
+    /// increasing `u`, `B` towards the texture's top row (Blender's increasing `v`), both made
+    /// perpendicular to `N` (per triangle, from its UVs). Needs UVs. (Cycles also bends
+    /// strongly tilted normals back towards the surface's, which we do not: `BENCHMARKS.md`.)
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normal_texture: Option<PathBuf>,
     /// Blender's "Transmission Weight".
     #[serde(default)]
     pub transmission: f32,
@@ -382,6 +390,7 @@ impl Default for Material {
             roughness_texture: None,
             metallic: 0.0,
             metallic_texture: None,
+            normal_texture: None,
             transmission: 0.0,
             ior: default_ior(),
             specular_ior_level: default_specular_level(),
@@ -1051,6 +1060,7 @@ impl Scene {
                 (&m.base_color_texture, "base_color_texture"),
                 (&m.roughness_texture, "roughness_texture"),
                 (&m.metallic_texture, "metallic_texture"),
+                (&m.normal_texture, "normal_texture"),
             ] {
                 if let Some(t) = t {
                     check(t, format!("{who}: {what}"))?;

@@ -968,3 +968,59 @@ fn nearly_smooth_rough_glass_renders_as_smooth_glass() {
         assert!((a - b).abs() <= tol * a, "{passes:?}: smooth {a} vs roughness 0.01 {b}");
     }
 }
+
+#[test]
+fn normal_map_bends_the_shading_normal_as_blenders_tangent_space() {
+    // A Lambertian floor (y = 0) with a constant tangent-space normal map (EXR, linear) under a
+    // delta sun of strength E. The floor is the XY quad turned −90° about X; its u grows along
+    // +X and its v (0 at the texture's top row) along +Z, so Blender's v (towards the top row)
+    // grows along world −Z: T = +X, B = −Z, N = +Y. A texel c encodes n = 2c − 1 in (T, B, N):
+    // tilting by t = 40° towards T gives n = (sin t, cos t, 0), towards B n = (0, cos t, −sin t).
+    // DiffDir = E·max(0, n·l)/π for the direction l towards the sun: E/π for a sun along n,
+    // E·cos 2t/π for the sun mirrored about N (so a wrong sign of T or B swaps the two), and
+    // E·cos t/π either way without the map. (A "delta" sun still spreads its directions over
+    // 4.5e-4 rad, ≤ 2.6e-3 of relative spread at 80° from the normal: the tolerance.)
+    let (e, t) = (3.0f64, 40f64.to_radians());
+    let w = 8;
+    let dir = tempfile::tempdir().unwrap();
+    for (k, (ts, n)) in [
+        ([t.sin(), 0.0, t.cos()], [t.sin(), t.cos(), 0.0]),
+        ([0.0, t.sin(), t.cos()], [0.0, t.cos(), -t.sin()]),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let name = format!("n{k}.exr");
+        let img = pixl_core::Image::from_fn(2, 2, 3, |_, _, c| (0.5 + 0.5 * ts[c]) as f32);
+        pixl_core::io::write_image(&dir.path().join(&name), &img).unwrap();
+        let mirrored = [-n[0], n[1], -n[2]];
+        for (mapped, towards, want) in [
+            (true, n, 1.0),
+            (true, mirrored, (2.0 * t).cos()),
+            (false, n, t.cos()),
+            (false, mirrored, t.cos()),
+        ] {
+            let mut s = floor_scene([0.5, 0.5, 0.5], w);
+            s.base_dir = dir.path().to_owned();
+            if mapped {
+                s.objects[0].material.normal_texture = Some(name.clone().into());
+            }
+            s.lights.push(Light::Sun {
+                name: String::new(),
+                direction: Some(towards.map(|v| -v as f32)),
+                strength: e as f32,
+                angle_deg: 0.0,
+                color: Color::Rgb([1.0, 1.0, 1.0]),
+            });
+            let film = render(&s, &opts(4, 0), &no_progress).unwrap();
+            let d = film.pass("DiffDir").unwrap();
+            let want = e * want / PI;
+            for v in d.data.iter() {
+                assert!(
+                    (*v as f64 - want).abs() < 3e-3 * want,
+                    "map {k}, mapped {mapped}, sun towards {towards:?}: DiffDir {v} vs {want}"
+                );
+            }
+        }
+    }
+}
