@@ -10,7 +10,8 @@
 //! 1 and no compensation. Computed per material when it is loaded (both sides: `η = ior` and
 //! `1/ior`), by a stratified midpoint rule of 32 × 32 visible normals per entry on a 16 × 16
 //! grid over `(r, μ)` (nodes `r = i/15`, `μ = (j + ½)/16`), bilinearly interpolated and clamped
-//! at the ends; about 2 ms per material. Accuracy: tested against the BSDF's own quadrature.
+//! at the ends: 2 × 256 entries × 1024 visible normals per material. Accuracy: tested against the
+//! BSDF's own quadrature.
 use super::fresnel_dielectric;
 use crate::math::V3;
 use crate::sampling::{ggx_lambda, ggx_sample_vndf};
