@@ -51,27 +51,54 @@ fn area_lights_are_seen_by_the_camera_only_when_asked() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let seen = pixl_render::Scene::load(&dir.path().join("seen.toml")).unwrap();
     assert_eq!(area_visibility(&seen), [true]);
-    // Other light types are never seen by the camera: the flag is refused, nothing written.
-    let out = dir.path().join("point.toml");
-    let o = pixl()
-        .args(["light", "add"])
-        .arg(&scene)
-        .args([
+    // A point light's sphere can be seen too (it needs a radius); a sun never is: the flag is
+    // refused, nothing written.
+    let add_typed = |args: &[&str], name: &str| {
+        let out = dir.path().join(name);
+        let o = pixl()
+            .args(["light", "add"])
+            .arg(&scene)
+            .args(args)
+            .args(["--visible-to-camera", "-o"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        (o, out)
+    };
+    let (o, out) = add_typed(
+        &[
             "--type",
             "point",
             "--power",
             "10",
             "--position",
             "0,1,0",
-            "--visible-to-camera",
-            "-o",
-        ])
-        .arg(&out)
-        .output()
-        .unwrap();
+            "--radius",
+            "0.1",
+        ],
+        "point.toml",
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let seen = pixl_render::Scene::load(&out).unwrap();
+    assert!(matches!(
+        seen.lights.as_slice(),
+        [pixl_render::scene::Light::Point {
+            visible_to_camera: true,
+            ..
+        }]
+    ));
+    let (o, out) = add_typed(
+        &["--type", "point", "--power", "10", "--position", "0,1,0"],
+        "bare.toml",
+    );
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("--visible-to-camera") && err.contains("area"), "{err}");
+    assert!(err.contains("--visible-to-camera") && err.contains("radius"), "{err}");
+    assert!(!out.exists());
+    let (o, out) = add_typed(&["--type", "sun", "--strength", "3"], "sun.toml");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--visible-to-camera") && err.contains("sun"), "{err}");
     assert!(!out.exists());
 }
 

@@ -409,9 +409,26 @@ fn no_colour_codes_in_pipes() {
     let o = run(&["render", s(&sc), "--spp", "1", "-o", s(&dir.path().join("p.exr"))]);
     assert!(o.status.success(), "{}", stderr(&o));
     let err = stderr(&o);
-    assert!(err.contains("smooth glass"), "the warning was expected: {err}");
     assert!(!err.contains('\x1b'), "ANSI codes in a pipe: {err:?}");
     assert!(!String::from_utf8_lossy(&o.stdout).contains('\x1b'));
+    // A warning (an unlit light) on a pipe: plain text too.
+    let o = run(&[
+        "light",
+        "add",
+        s(&sc),
+        "--type",
+        "point",
+        "--power",
+        "0",
+        "--position",
+        "0,1,0",
+        "-o",
+        s(&dir.path().join("dark.toml")),
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let err = stderr(&o);
+    assert!(err.contains("gives no light"), "the warning was expected: {err}");
+    assert!(!err.contains('\x1b'), "ANSI codes in a pipe: {err:?}");
 }
 
 #[test]

@@ -15,15 +15,16 @@
 //! - Axes: our +Y-up world maps to Blender's +Z-up by `C: (x, y, z) ↦ (x, −z, y)`; every
 //!   object-to-world matrix `M` becomes `C·M` (vertices are kept in our object space).
 //! - Camera: same frame (looks down local −Z, +Y up), `sensor_fit = VERTICAL`, lens from the
-//!   vertical FOV, principal point offsets as `shift_x/shift_y`, pixel filter box of width 1
-//!   (our renderer's uniform in-pixel jitter).
+//!   vertical FOV (24 mm sensor height), principal point offsets as `shift_x/shift_y`, pixel
+//!   filter box of width 1 (our renderer's uniform in-pixel jitter); depth of field as
+//!   `dof.use_dof`, `focus_distance`, `aperture_fstop` (round aperture), off without `dof`.
 //! - Materials: Principled BSDF with the same inputs; colour textures sRGB, roughness/metallic
-//!   textures Non-Color. UVs flip to Blender's `v = 0` at the bottom.
+//!   textures Non-Color; a normal map through a tangent-space Normal Map node (strength 1). UVs flip to Blender's `v = 0` at the bottom.
 //! - Lights: Blender's own units, one to one (point/spot `energy` = power W and
 //!   `shadow_soft_size` = radius; spot `spot_size`, `spot_blend`; area `shape`, `size`, `size_y`,
 //!   power W, oriented with the native renderer's area axes; sun `energy` = strength W/m²,
 //!   `angle`). Blackbody colours are converted to RGB here ([`Color::rgb`]). Every light
-//!   object's `visible_camera` is set explicitly: on only for area lights with
+//!   object's `visible_camera` is set explicitly: on only for area, point and spot lights with
 //!   `visible_to_camera` (the native renderer's rule; Blender 4/5 default it to off too).
 //! - World: Background colour × strength, or an equirectangular Environment Texture rotated about
 //!   the up axis by `rotation_deg`.
@@ -123,6 +124,10 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
         "width": cam.width, "height": cam.height, "fov_y_deg": cam.fov_y(),
         "shift_x": (0.5 * w - cx) / maxdim, "shift_y": (cy - 0.5 * h) / maxdim,
         "matrix": frame_matrix(right, up, back, o),
+        "dof": match &cam.dof {
+            Some(d) => json!({ "focus_distance": d.focus_distance, "aperture_fstop": d.aperture_fstop }),
+            None => Value::Null,
+        },
     });
     let mut textures = 0;
     let mut objects = Vec::new();
@@ -141,6 +146,7 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
             "base_color": m.base_color.rgb(), "base_color_texture": tex(&m.base_color_texture)?,
             "roughness": m.roughness, "roughness_texture": tex(&m.roughness_texture)?,
             "metallic": m.metallic, "metallic_texture": tex(&m.metallic_texture)?,
+            "normal_texture": tex(&m.normal_texture)?,
             "transmission": m.transmission,
             "specular_ior_level": m.specular_ior_level, "ior": m.ior,
             "emission_color": m.emission_color.rgb(), "emission_strength": m.emission_strength,
@@ -172,10 +178,11 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
                 position,
                 power,
                 radius,
+                visible_to_camera,
                 ..
             } => json!({
                 "type": "POINT", "name": name, "matrix": at(*position), "color": color, "energy": power,
-                "radius": radius,
+                "radius": radius, "visible_camera": visible_to_camera,
             }),
             Light::Spot {
                 position,
@@ -183,10 +190,12 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
                 spot_size_deg,
                 blend,
                 radius,
+                visible_to_camera,
                 ..
             } => json!({
                 "type": "SPOT", "name": name, "matrix": at(*position), "color": color, "energy": power,
                 "radius": radius, "spot_size_deg": spot_size_deg, "blend": blend,
+                "visible_camera": visible_to_camera,
             }),
             Light::Area {
                 position,
@@ -372,6 +381,13 @@ def make_material(name, m):
         if m.get(key):
             node = image_node(nt, m[key], non_color)
             nt.links.new(node.outputs["Color"], bsdf.inputs[socket])
+    if m.get("normal_texture"):
+        node = image_node(nt, m["normal_texture"], True)
+        nmap = nt.nodes.new("ShaderNodeNormalMap")
+        nmap.space = "TANGENT"
+        nmap.inputs["Strength"].default_value = 1.0
+        nt.links.new(node.outputs["Color"], nmap.inputs["Color"])
+        nt.links.new(nmap.outputs["Normal"], bsdf.inputs["Normal"])
     return mat
 
 
@@ -410,7 +426,7 @@ def add_light(scene, l):
     if l["type"] == "SUN":
         data.angle = math.radians(l["angle_deg"])
     ob = bpy.data.objects.new(l["name"], data)
-    # Camera rays see a light only where the scene asks (area lights); set explicitly rather
+    # Camera rays see a light only where the scene asks (area, point, spot); set explicitly rather
     # than relying on Blender's default (off in 4/5).
     ob.visible_camera = bool(l.get("visible_camera", False))
     scene.collection.objects.link(ob)
@@ -427,6 +443,13 @@ def add_camera(scene, c):
     data.shift_y = c["shift_y"]
     data.clip_start = 1e-3
     data.clip_end = 1e5
+    dof = c.get("dof")
+    data.dof.use_dof = dof is not None
+    if dof is not None:
+        data.dof.focus_distance = dof["focus_distance"]
+        data.dof.aperture_fstop = dof["aperture_fstop"]
+        data.dof.aperture_blades = 0
+        data.dof.aperture_ratio = 1.0
     ob = bpy.data.objects.new("Camera", data)
     scene.collection.objects.link(ob)
     ob.matrix_world = Y_UP_TO_Z_UP @ matrix(c["matrix"])

@@ -7,6 +7,7 @@
 //! inverse transpose of the object matrix.
 use crate::bvh::{Bvh, Hit, Ray, RayPack, Tri};
 use crate::error::{RenderError, Result};
+use crate::material::glass_albedo::GlassTables;
 use crate::material::Coat;
 use crate::math::V3;
 use crate::mesh::Mesh;
@@ -37,12 +38,17 @@ pub struct MaterialData {
     pub roughness_tex: Option<Texture>,
     pub metallic: f32,
     pub metallic_tex: Option<Texture>,
+    /// Tangent-space normal map ([`Geometry::mapped_normal`]).
+    pub normal_tex: Option<Texture>,
     pub transmission: f32,
     pub ior: f32,
     pub emission: V3,
     /// The dielectric specular coat, from the scene material's IOR and specular IOR level: must
     /// be `Coat::new(ior, level)` ([`resolve_material`] builds it; rebuild it if `ior` changes).
     pub coat: Coat,
+    /// Albedo tables of the rough glass's energy compensation, for materials that can have
+    /// rough glass (transmission, roughness and an IOR above 1): [`GlassTables::new`] of `ior`.
+    pub glass: Option<std::sync::Arc<GlassTables>>,
 }
 
 pub struct Geometry {
@@ -192,10 +198,16 @@ pub fn resolve_material(scene: &Scene, m: &crate::scene::Material) -> Result<Mat
         roughness_tex: load(&m.roughness_texture, false)?,
         metallic: m.metallic,
         metallic_tex: load(&m.metallic_texture, false)?,
+        normal_tex: match &m.normal_texture {
+            Some(p) => Some(Texture::load_data(&scene.resolve(p))?),
+            None => None,
+        },
         transmission: m.transmission,
         ior: m.ior,
         emission: V3::from_arr(m.emission_color.rgb()) * m.emission_strength,
         coat: Coat::new(m.ior, m.specular_ior_level),
+        glass: (m.transmission > 0.0 && m.metallic < 1.0 && m.roughness > 0.0 && m.ior > 1.001)
+            .then(|| std::sync::Arc::new(GlassTables::new(m.ior))),
     })
 }
 
@@ -364,6 +376,47 @@ impl Geometry {
             prim,
             t,
         }
+    }
+
+    /// `hit` with its shading normal bent by the material's normal map (Blender's Normal Map
+    /// node, tangent space, strength 1; see [`crate::scene::Material::normal_texture`]): the
+    /// tangent is the triangle's `∂p/∂u` and the bitangent `±N × T`, its sign that of Blender's
+    /// `∂p/∂v` (our `−∂p/∂v`, as `v` is flipped), as MikkTSpace gives for a triangle on its
+    /// own. Unchanged without a map, or where the triangle's UVs are degenerate.
+    #[inline(always)]
+    pub fn mapped_normal(&self, m: &MaterialData, hit: SurfaceHit) -> SurfaceHit {
+        match &m.normal_tex {
+            None => hit,
+            Some(tex) => self.bend_normal(tex, hit),
+        }
+    }
+
+    #[inline(never)]
+    fn bend_normal(&self, tex: &Texture, hit: SurfaceHit) -> SurfaceHit {
+        let (tri, a) = (&self.tris[hit.prim as usize], &self.attrs[hit.prim as usize]);
+        let (dp1, dp2) = (tri.p1 - tri.p0, tri.p2 - tri.p0);
+        let (du1, dv1) = (a.uv[1][0] - a.uv[0][0], a.uv[1][1] - a.uv[0][1]);
+        let (du2, dv2) = (a.uv[2][0] - a.uv[0][0], a.uv[2][1] - a.uv[0][1]);
+        let det = du1 * dv2 - du2 * dv1;
+        if !(det.abs() > 1e-12) {
+            return hit;
+        }
+        let dpdu = (dp1 * dv2 - dp2 * dv1) / det;
+        let dpdv = (dp2 * du1 - dp1 * du2) / det;
+        let n = hit.ns;
+        let t = (dpdu - n * n.dot(dpdu)).normalize();
+        let b = n.cross(t);
+        if !(t.is_finite() && b.is_finite()) {
+            return hit;
+        }
+        // Blender's v grows towards the texture's top row: along −∂p/∂v here.
+        let b = if b.dot(dpdv) > 0.0 { -b } else { b };
+        let c = tex.sample(hit.uv[0], hit.uv[1]) * 2.0 - V3::ONE;
+        let mapped = (t * c.x + b * c.y + n * c.z).normalize();
+        if !mapped.is_finite() || mapped.is_zero() {
+            return hit;
+        }
+        SurfaceHit { ns: mapped, ..hit }
     }
 
     pub fn occluded(&self, ray: &Ray, tmin: f32, tmax: f32) -> bool {

@@ -7,7 +7,8 @@
 //!
 //! Random numbers ([`crate::sampler`], chosen by [`Renderer::sampler`]): each `(pixel, sample)`
 //! asks for its uniforms by *dimension*, fixed per decision and bounce — pixel position
-//! (dimension 0), then per bounce `b` a block of five: light pick (1-D), light position (2-D),
+//! (dimension 0), lens position with depth of field (`sampler::dim::LENS`), then per bounce `b`
+//! a block of five: light pick (1-D), light position (2-D),
 //! BSDF lobe (1-D), BSDF direction (2-D), Russian roulette (1-D) (`sampler::dim`). The default
 //! [`Sampler::Sobol`] gives every dimension its own padded, Owen-scrambled 2-D Sobol sequence
 //! seeded per `(seed, pixel, dimension)`, so at 2^k spp each pair of a pixel is a (0,k,2)-net
@@ -199,7 +200,14 @@ impl Renderer {
         let mut camera = Batch::new();
         for j in 0..n {
             let [u, v] = smp.camera(j);
-            camera.push(j, self.camera.ray(x as f32 + u, y as f32 + v), f32::INFINITY);
+            let (px, py) = (x as f32 + u, y as f32 + v);
+            let ray = if self.camera.has_lens() {
+                let [l1, l2] = smp.lens(j);
+                self.camera.ray_lens(px, py, l1, l2)
+            } else {
+                self.camera.ray(px, py)
+            };
+            camera.push(j, ray, f32::INFINITY);
         }
         let mut hits = [None; PACKET];
         camera.intersect(geom, 1, &mut hits);
@@ -342,6 +350,7 @@ impl Renderer {
                     continue;
                 }
                 path.depth += 1;
+                let h2 = geom.mapped_normal(m2, h2);
                 path.hit = h2;
                 path.bsdf = Bsdf::new(m2, &h2, -ray.d);
                 if path.bsdf.is_black() {
@@ -374,10 +383,12 @@ impl Renderer {
             return None;
         };
         s.depth = self.camera.z_depth(hit.p);
-        s.normal = hit.ns;
-        s.normal_n = 1;
         let geom = &self.geom;
         let mat = &geom.materials[geom.attrs[hit.prim as usize].material as usize];
+        // The Normal pass holds the shading normal, bent by a normal map (as Cycles').
+        let hit = geom.mapped_normal(mat, hit);
+        s.normal = hit.ns;
+        s.normal_n = 1;
         if mat.emission.max_comp() > 0.0 {
             s.emit += mat.emission;
             s.combined += mat.emission;

@@ -27,7 +27,9 @@
 //! rays (the sun only by rays that escape the scene, as
 //! in Cycles — so smooth glass and mirrors show its glint) and combined with light sampling by
 //! MIS (power heuristic). No light is seen by camera rays except emissive triangles, the
-//! world, and area lights marked `visible_to_camera`. Area lights do not occlude.
+//! world, and area and sphere (point / spot with a radius) lights marked `visible_to_camera`
+//! (sphere lights then show their radiance `I / (π r²)`, spot-masked, wherever a camera ray
+//! hits the sphere, as in Cycles). Lights do not occlude.
 use crate::bvh::Ray;
 use crate::error::Result;
 use crate::geometry::Geometry;
@@ -43,6 +45,8 @@ pub enum LightKind {
         p: V3,
         intensity: V3,
         radius: f32,
+        /// The sphere is seen by camera rays (needs a radius).
+        camera: bool,
     },
     Spot {
         p: V3,
@@ -51,6 +55,7 @@ pub enum LightKind {
         radius: f32,
         cos_half: f32,
         smooth: f32,
+        camera: bool,
     },
     Area {
         c: V3,
@@ -224,6 +229,7 @@ impl Lights {
                     position,
                     power: p,
                     radius,
+                    visible_to_camera,
                     ..
                 } => {
                     let intensity = color * (*p / (4.0 * PI));
@@ -234,6 +240,7 @@ impl Lights {
                         p: V3::from_arr(*position),
                         intensity,
                         radius: *radius,
+                        camera: *visible_to_camera && *radius > 0.0,
                     });
                     power.push(p * color.luminance());
                 }
@@ -243,6 +250,7 @@ impl Lights {
                     spot_size_deg,
                     blend,
                     radius,
+                    visible_to_camera,
                     ..
                 } => {
                     let intensity = color * (*p / (4.0 * PI));
@@ -258,6 +266,7 @@ impl Lights {
                         radius: *radius,
                         cos_half,
                         smooth,
+                        camera: *visible_to_camera && *radius > 0.0,
                     });
                     power.push(p * color.luminance());
                 }
@@ -397,6 +406,7 @@ impl Lights {
                 p: lp,
                 intensity,
                 radius,
+                ..
             }
             | LightKind::Spot {
                 p: lp,
@@ -568,8 +578,8 @@ impl Lights {
         self.area_hits_if(ray, tmax, false, f)
     }
 
-    /// [`Lights::area_hits`] for a camera ray: only the area lights visible to the camera (no
-    /// sphere lights).
+    /// [`Lights::area_hits`] for a camera ray: only the area and sphere lights visible to the
+    /// camera (the light pdf passed to `f` is then meaningless: no MIS at the camera).
     #[inline(always)]
     pub fn camera_area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
         self.area_hits_if(ray, tmax, true, f)
@@ -614,25 +624,27 @@ impl Lights {
                 }
             }
         }
-        if camera_ray {
-            return; // point and spot lights are never seen by the camera (Blender's default)
-        }
         for &i in &self.sphere_indices {
             let light = &self.lights[i];
             let (LightKind::Point {
                 p: c,
                 intensity,
                 radius,
+                camera,
             }
             | LightKind::Spot {
                 p: c,
                 intensity,
                 radius,
+                camera,
                 ..
             }) = light
             else {
                 continue;
             };
+            if camera_ray && !camera {
+                continue;
+            }
             let oc = ray.o - *c;
             let b = oc.dot(ray.d);
             let disc = b * b - (oc.dot(oc) - radius * radius);
@@ -643,18 +655,21 @@ impl Lights {
             if !(t > 1e-5 && t < tmax) {
                 continue;
             }
+            let mask = light.spot_mask(oc);
+            if !(mask > 0.0) {
+                continue;
+            }
+            let radiance = *intensity / (PI * radius * radius) * mask;
+            if camera_ray {
+                // The camera sees the sphere wherever its rays hit it (no MIS to match).
+                f(radiance, 0.0, t);
+                continue;
+            }
             // Only where light sampling samples the sphere as a cone (else it is a point).
             let Some(cone) = SphereCone::new(*c, *radius, ray.o) else {
                 continue;
             };
-            let mask = light.spot_mask(oc);
-            if mask > 0.0 {
-                f(
-                    *intensity / (PI * radius * radius) * mask,
-                    self.dist.pmf(i) / cone.omega,
-                    t,
-                );
-            }
+            f(radiance, self.dist.pmf(i) / cone.omega, t);
         }
     }
 }

@@ -6,12 +6,24 @@
 //! - **Metal** (weight `metallic`): GGX (`α = roughness²`, height-correlated Smith G2) with
 //!   Schlick Fresnel `F0 = min(base, 1)` (Cycles' F82-tint with a white tint). Then
 //!   `w ← w · (1 − metallic)`.
-//! - **Transmission** (weight `w · transmission`): a *smooth* dielectric of the given IOR
-//!   (Fresnel-weighted mirror reflection + refraction tinted by `√base`, as Cycles' Principled
-//!   BSDF does, so that light crossing a solid object — in and out — is tinted by `base`),
-//!   whatever the roughness — rough glass is rendered as smooth glass (known approximation;
-//!   Cycles uses rough GGX glass). Radiance is not scaled by `η²` at refraction, as Cycles does
-//!   not for camera paths. Then `w ← w · (1 − transmission)`.
+//! - **Transmission** (weight `w · transmission`): a dielectric of the given IOR, Fresnel-weighted
+//!   reflection + refraction tinted by `√base` (as Cycles' Principled BSDF does, so that light
+//!   crossing a solid object — in and out — is tinted by `base`). Smooth (roughness 0, or IOR
+//!   within 1e-3 of 1, which refracts straight through): a delta mirror + refraction. Rough:
+//!   GGX microfacet glass after Walter et al. 2007, "Microfacet Models for Refraction through
+//!   Rough Surfaces" (`α` as above): for the microfacet normal `h` (reflection: `h ∝ wo + wi`;
+//!   refraction: `h ∝ ±(wo + η wi)`, turned to the outside), with `F = F_η(wo·h)` and the
+//!   height-correlated `G2`,
+//!   `f_r·cos θi = F · D(h) · G2 / (4 cos θo)` (glossy) and
+//!   `f_t·|cos θi| = √base · (1 − F) · D(h) · G2 · (wo·h) · J / cos θo` (transmission), with
+//!   `J = η² |wi·h| / (wo·h + η wi·h)²` the refraction Jacobian `dω_h/dω_i`. Sampling picks a
+//!   visible normal (`pdf_h = G1(wo) (wo·h) D(h) / cos θo`), then reflects with probability `F`,
+//!   else refracts, so every sample weighs `G2 / G1(wo)` (× the tint); as the roughness goes to
+//!   0 this becomes the smooth case. Energy compensation as in Cycles' multiscatter glass: both
+//!   parts are scaled by `1 / E(r, μo)`, `E` the single-scattering albedo of the clear glass on
+//!   the side `wo` is on ([`glass_albedo`], tables per material), so a clear glass reflects and
+//!   transmits all the light it gets, rough or smooth. Radiance is not scaled by `η²` at
+//!   refraction, as Cycles does not for camera paths. Then `w ← w · (1 − transmission)`.
 //! - **Dielectric specular** (weight `w`): GGX with the exact dielectric Fresnel of
 //!   `η = ior_from_F0(F0)`, `F0 = ((ior−1)/(ior+1))² · 2 · specular_ior_level` (the real Fresnel
 //!   curve rescaled to start at `F0`; for level 0.5, `η = ior`). Absent when `F0 = 0`.
@@ -45,6 +57,7 @@ use std::f32::consts::FRAC_1_PI;
 
 pub mod ggx_albedo;
 mod ggx_tables;
+pub mod glass_albedo;
 pub use ggx_albedo::{f0_from_ior, ior_from_f0};
 
 /// Which pass family a lobe belongs to.
@@ -99,6 +112,10 @@ pub struct Bsdf {
     spec_w: V3,
     spec_eta: f32,
     trans_w: f32,
+    /// Whether the transmission closure is rough (GGX glass) rather than a delta, and its
+    /// energy compensation `1 / E(r, μo)` (1 without tables).
+    rough_trans: bool,
+    glass_scale: f32,
     tint: V3,
     /// Relative IOR across the interface in the direction of travel into the surface.
     eta: f32,
@@ -278,6 +295,16 @@ impl Bsdf {
             gloss_albedo + V3::splat(trans_w * fr),
             tint * (trans_w * (1.0 - fr)),
         ];
+        // IOR 1 refracts straight through whatever the roughness (the microfacet form has no
+        // refracted lobe there): smooth, as below 1e-3 from it.
+        let rough_trans = trans_w > 0.0 && roughness > 0.0 && m.ior > 1.001;
+        let glass_scale = match (&m.glass, rough_trans) {
+            (Some(t), true) => {
+                let side = if entering { &t.entering } else { &t.leaving };
+                1.0 / side.eval(roughness, cos_o).max(0.05)
+            }
+            _ => 1.0,
+        };
         Bsdf {
             lambda_o: ggx_lambda(wo_local, alpha),
             p_spec_g1_o: p_spec * ggx_g1(wo_local, alpha),
@@ -294,6 +321,8 @@ impl Bsdf {
             spec_w,
             spec_eta,
             trans_w,
+            rough_trans,
+            glass_scale,
             tint,
             eta,
             p_diff,
@@ -310,7 +339,7 @@ impl Bsdf {
 
     /// Whether the BSDF has a non-delta lobe (worth light sampling).
     pub fn has_smooth(&self) -> bool {
-        self.p_diff + self.p_spec > 0.0
+        self.p_diff + self.p_spec > 0.0 || self.rough_trans
     }
 
     /// Evaluates the non-delta lobes for the incident direction `wi` (world, unit).
@@ -319,7 +348,11 @@ impl Bsdf {
         let wi = self.frame.to_local(wi_world);
         let wo = self.wo_local;
         let mut out = BsdfEval::default();
-        if wi.z <= 0.0 || wo.z <= 0.0 || wi_world.dot(self.ng) <= 0.0 {
+        let side = wi_world.dot(self.ng);
+        if wi.z <= 0.0 || wo.z <= 0.0 || side <= 0.0 {
+            if self.rough_trans && wo.z > 0.0 && wi.z < 0.0 && side < 0.0 {
+                self.eval_refraction(wi, &mut out);
+            }
             return out;
         }
         if self.p_diff > 0.0 {
@@ -344,7 +377,94 @@ impl Bsdf {
             out.glossy = f * (d * g2 / self.four_cos_o);
             out.pdf += self.p_spec_g1_o * d / self.four_cos_o;
         }
+        if self.rough_trans {
+            self.eval_glass_reflection(wi, &mut out);
+        }
         out
+    }
+
+    /// Adds the rough glass's reflection for `wi` (local, above) to `out` (see the module docs).
+    #[inline(always)]
+    fn eval_glass_reflection(&self, wi: V3, out: &mut BsdfEval) {
+        let wo = self.wo_local;
+        let h = (wo + wi).normalize();
+        let fr = fresnel_dielectric(wo.dot(h), self.eta);
+        let d = ggx_d(h, self.alpha);
+        let g1_o = 1.0 / (1.0 + self.lambda_o);
+        let g2 = 1.0 / (1.0 + self.lambda_o + ggx_lambda(wi, self.alpha));
+        out.glossy += V3::splat(self.trans_w * self.glass_scale * fr * d * g2 / self.four_cos_o);
+        out.pdf += self.p_trans * fr * g1_o * d / self.four_cos_o;
+    }
+
+    /// The rough glass's refraction for `wi` (local, below): `out.transmission` and its pdf
+    /// (see the module docs; no other lobe reaches below the surface).
+    #[inline(always)]
+    fn eval_refraction(&self, wi: V3, out: &mut BsdfEval) {
+        let (wo, eta) = (self.wo_local, self.eta);
+        let h = wo + wi * eta;
+        let len = h.length();
+        if !(len > 0.0) {
+            return;
+        }
+        let h = if h.z < 0.0 { -h / len } else { h / len };
+        let (cos_o, cos_i) = (wo.dot(h), wi.dot(h));
+        if !(cos_o > 0.0 && cos_i < 0.0) {
+            return;
+        }
+        let fr = fresnel_dielectric(cos_o, eta);
+        let denom = cos_o + eta * cos_i;
+        let jacobian = eta * eta * -cos_i / (denom * denom);
+        let d = ggx_d(h, self.alpha);
+        let g1_o = 1.0 / (1.0 + self.lambda_o);
+        let g2 = 1.0 / (1.0 + self.lambda_o + ggx_lambda(wi, self.alpha));
+        let t = (1.0 - fr) * d * cos_o * jacobian / wo.z;
+        out.transmission = self.tint * (self.trans_w * self.glass_scale * t * g2);
+        out.pdf += self.p_trans * t * g1_o;
+    }
+
+    /// Samples the rough glass: a visible normal, then reflection with probability `F`, else
+    /// refraction; `u` picks between them.
+    #[inline(always)]
+    fn sample_rough_glass(&self, u: f32, u1: f32, u2: f32) -> Option<BsdfSample> {
+        let (wo, eta) = (self.wo_local, self.eta);
+        let h = ggx_sample_vndf(wo, self.alpha, u1, u2);
+        let cos_o = wo.dot(h);
+        if !(cos_o > 0.0) {
+            return None;
+        }
+        let fr = fresnel_dielectric(cos_o, eta);
+        let transmitted = u >= fr;
+        let wi = if transmitted {
+            let cos_t = (1.0 - (1.0 - cos_o * cos_o) / (eta * eta)).max(0.0).sqrt();
+            (h * (cos_o / eta - cos_t) - wo / eta).normalize()
+        } else {
+            h * (2.0 * cos_o) - wo
+        };
+        if (wi.z > 0.0) == transmitted || wi.z == 0.0 {
+            return None;
+        }
+        let wi_world = self.frame.to_world(wi);
+        // Keep the sample on the geometric side it claims to be on.
+        if (wi_world.dot(self.ng) > 0.0) == transmitted {
+            return None;
+        }
+        let e = self.eval(wi_world);
+        if !(e.pdf > 0.0) {
+            return None;
+        }
+        let inv = 1.0 / e.pdf;
+        Some(BsdfSample {
+            wi: wi_world,
+            weight: BsdfEval {
+                diffuse: e.diffuse * inv,
+                glossy: e.glossy * inv,
+                transmission: e.transmission * inv,
+                pdf: e.pdf,
+            },
+            pdf: e.pdf,
+            delta: false,
+            transmitted,
+        })
     }
 
     /// Samples an incident direction with uniforms `(u_lobe, u1, u2)`.
@@ -355,8 +475,11 @@ impl Bsdf {
             return None;
         }
         if u_lobe < self.p_trans {
-            // Smooth dielectric: reflect with probability F, else refract.
             let u = u_lobe / self.p_trans;
+            if self.rough_trans {
+                return self.sample_rough_glass(u, u1, u2);
+            }
+            // Smooth dielectric: reflect with probability F, else refract.
             let fr = fresnel_dielectric(wo.z, self.eta);
             let scale = self.trans_w / self.p_trans;
             let mut weight = BsdfEval::default();
@@ -429,10 +552,12 @@ mod tests {
             roughness_tex: None,
             metallic,
             metallic_tex: None,
+            normal_tex: None,
             transmission: 0.0,
             ior: 1.5,
             emission: V3::ZERO,
             coat: Coat::new(1.5, specular_level),
+            glass: None,
         }
     }
 
@@ -496,6 +621,152 @@ mod tests {
         }
         let mean = sum / n as f64;
         assert!((mean - 0.48).abs() < 1e-3, "mean transmission weight {mean}");
+    }
+
+    fn glass(base: f32, roughness: f32, transmission: f32) -> MaterialData {
+        MaterialData {
+            transmission,
+            glass: Some(std::sync::Arc::new(glass_albedo::GlassTables::new(1.5))),
+            ..material(base, roughness, 0.0, 0.5)
+        }
+    }
+
+    /// `∫ f·|cos θi| dωi` per lobe (diffuse, glossy, transmission) over the whole sphere, by a
+    /// (θ, φ) midpoint rule in f64.
+    fn integrate_sphere(b: &Bsdf) -> [f64; 3] {
+        let (nt, np) = (3000, 720);
+        let mut sum = [0.0f64; 3];
+        for i in 0..nt {
+            let th = (i as f64 + 0.5) / nt as f64 * PI;
+            let dw = th.sin() * (PI / nt as f64) * (2.0 * PI / np as f64);
+            for j in 0..np {
+                let ph = (j as f64 + 0.5) / np as f64 * 2.0 * PI;
+                let wi = V3::new(
+                    (th.sin() * ph.cos()) as f32,
+                    (th.sin() * ph.sin()) as f32,
+                    th.cos() as f32,
+                );
+                let e = b.eval(wi);
+                for (k, v) in [e.diffuse.x, e.glossy.x, e.transmission.x].into_iter().enumerate() {
+                    sum[k] += v as f64 * dw;
+                }
+            }
+        }
+        sum
+    }
+
+    /// The mean sample weight per lobe over `n × n` stratified direction uniforms (the lobe
+    /// uniform from a base-3 radical inverse): an estimate of the same integrals.
+    fn mean_weights(b: &Bsdf, n: usize) -> [f64; 3] {
+        let mut sum = [0.0f64; 3];
+        for i in 0..n {
+            for j in 0..n {
+                let (mut k, mut f, mut ul) = (i * n + j + 1, 1.0f64 / 3.0, 0.0f64);
+                while k > 0 {
+                    ul += (k % 3) as f64 * f;
+                    k /= 3;
+                    f /= 3.0;
+                }
+                let (u1, u2) = ((i as f32 + 0.5) / n as f32, (j as f32 + 0.5) / n as f32);
+                if let Some(s) = b.sample(ul as f32, u1, u2) {
+                    let w = s.weight;
+                    for (k, v) in [w.diffuse.x, w.glossy.x, w.transmission.x].into_iter().enumerate() {
+                        sum[k] += v as f64;
+                    }
+                }
+            }
+        }
+        sum.map(|v| v / (n * n) as f64)
+    }
+
+    #[test]
+    fn rough_glass_sampling_matches_its_evaluation_and_conserves_energy() {
+        // Rough GGX glass (Walter et al. 2007), IOR 1.5, seen from outside (η = 1.5) and from
+        // inside (η = 1/1.5, total internal reflection beyond 41.8°). Two independent estimates of
+        // each lobe's albedo `∫ f·|cos θi| dωi` must agree: the quadrature of `eval` over the
+        // sphere and the mean weight of `sample` (a visible normal, then reflect or refract; its
+        // weight uses the refraction Jacobian and the pdf `eval` reports, so a wrong Jacobian,
+        // pdf or half vector shows as a mismatch). With base 1 (no tint) every microfacet event
+        // keeps all the energy (F + (1 − F) = 1), so without the energy compensation the total
+        // lies between 1 minus the single-scattering masking loss and 1 (measured 0.1–2.5 % at
+        // roughness 0.3 and 2–24 % at 0.6, most from inside near total internal reflection),
+        // bounded here by 3 % and 25 %; with it (the material's tables, `glass_albedo`, made by
+        // a different rule: VNDF strata of the sampler, on a grid, interpolated) the total is 1
+        // within 1 %: a clear glass is a white furnace, as the smooth glass.
+        for (rough, max_loss, tables) in [
+            (0.3f32, 0.03f64, false),
+            (0.6, 0.25, false),
+            (0.3, 0.01, true),
+            (0.6, 0.01, true),
+        ] {
+            for (inside, mu) in [(false, 0.9f32), (false, 0.4), (true, 0.9), (true, 0.6)] {
+                let mut hit = flat_hit();
+                let wo = view(mu);
+                if inside {
+                    // Outward normal opposite to the viewer: the ray is inside the glass.
+                    hit.ng = -hit.ng;
+                    hit.ns = -hit.ns;
+                }
+                let mut m = glass(1.0, rough, 1.0);
+                if !tables {
+                    m.glass = None;
+                }
+                let b = Bsdf::new(&m, &hit, wo);
+                assert!(b.has_smooth() && b.rough_trans);
+                let q = integrate_sphere(&b);
+                let m = mean_weights(&b, 400);
+                let what = format!("rough {rough}, inside {inside}, mu {mu}, tables {tables}");
+                assert_eq!(q[0], 0.0, "{what}: no diffuse lobe");
+                for k in 1..3 {
+                    assert!(
+                        (q[k] - m[k]).abs() < 0.01 * (q[1] + q[2]),
+                        "{what}: lobe {k}: quadrature {} vs sampled {}",
+                        q[k],
+                        m[k]
+                    );
+                }
+                let total = q[1] + q[2];
+                let hi = if tables { 1.0 + max_loss } else { 1.0 + 2e-3 };
+                assert!(total <= hi && total >= 1.0 - max_loss, "{what}: albedo {total}");
+            }
+        }
+    }
+
+    #[test]
+    fn rough_glass_mixes_with_the_other_lobes_and_tends_to_smooth_glass() {
+        // Half transmission over a coloured base (diffuse + coat + rough glass, one-sample MIS
+        // across lobes): quadrature and sampling agree per lobe, transmission tinted by √base.
+        let b = Bsdf::new(&glass(0.64, 0.4, 0.5), &flat_hit(), view(0.7));
+        let q = integrate_sphere(&b);
+        let m = mean_weights(&b, 400);
+        for k in 0..3 {
+            assert!(q[k] > 0.01, "lobe {k} albedo {}", q[k]);
+            assert!(
+                (q[k] - m[k]).abs() < 0.01 * (q[0] + q[1] + q[2]),
+                "lobe {k}: {} vs {}",
+                q[k],
+                m[k]
+            );
+        }
+        // Roughness → 0 (α clamps at 1e-3): the lobes' albedos become the smooth glass's, F and
+        // √base·(1 − F) (base 0.25, normal-ish incidence), and smooth glass is still a delta.
+        for mu in [1.0f32, 0.5] {
+            let m_rough = mean_weights(&Bsdf::new(&glass(0.25, 0.01, 1.0), &flat_hit(), view(mu)), 300);
+            let smooth = Bsdf::new(&glass(0.25, 0.0, 1.0), &flat_hit(), view(mu));
+            assert!(!smooth.rough_trans && !smooth.has_smooth());
+            let fr = fresnel_dielectric(mu, 1.5) as f64;
+            assert!(
+                (m_rough[1] - fr).abs() < 0.01 * fr + 1e-4,
+                "mu {mu}: glossy {} vs F {fr}",
+                m_rough[1]
+            );
+            let t = 0.5 * (1.0 - fr);
+            assert!(
+                (m_rough[2] - t).abs() < 0.01 * t,
+                "mu {mu}: transmission {} vs {t}",
+                m_rough[2]
+            );
+        }
     }
 
     #[test]

@@ -76,6 +76,7 @@ pub fn preset_lights(scene: &Scene, name: &str) -> Result<Vec<Light>> {
             power: 4.0 * std::f32::consts::PI * e * d * d,
             radius: 0.05 * r,
             color: Color::Blackbody { kelvin },
+            visible_to_camera: false,
         }
     };
     let lights = match name {
@@ -99,6 +100,7 @@ pub fn preset_lights(scene: &Scene, name: &str) -> Result<Vec<Light>> {
                 blend: 0.3,
                 radius: 0.02 * r,
                 color: Color::Blackbody { kelvin: 3000.0 },
+                visible_to_camera: false,
             }]
         }
         "soft-frontal-sun" => vec![Light::Sun {

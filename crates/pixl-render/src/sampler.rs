@@ -57,8 +57,12 @@ pub enum Sampler {
 /// Each bounce has its own block of [`dim::PER_BOUNCE`], so the layout does not depend on the
 /// path's length or on which steps it skipped.
 pub mod dim {
-    /// Position inside the pixel (2-D). A pinhole camera has no lens dimension.
+    /// Position inside the pixel (2-D).
     pub const CAMERA: u32 = 0;
+    /// Position on the lens (2-D), asked only with depth of field (a pinhole has none). Outside
+    /// the range of the bounce blocks ([`at`] reaches it only after ~858 M bounces), so it
+    /// moves no other decision's dimension.
+    pub const LENS: u32 = u32::MAX;
     /// Light pick (1-D); this and the next are offsets inside a bounce's block.
     pub const LIGHT_PICK: u32 = 0;
     /// Position on the picked light (2-D).
@@ -115,6 +119,13 @@ impl PacketSampler {
         dispatch!(self, p => p.camera(lane))
     }
 
+    /// Position on the lens (depth of field only; the independent sampler draws it right after
+    /// the position inside the pixel).
+    #[inline(always)]
+    pub fn lens(&mut self, lane: usize) -> [f32; 2] {
+        dispatch!(self, p => p.lens(lane))
+    }
+
     /// The next calls are for the path vertex at bounce `depth`.
     #[inline(always)]
     pub fn begin_vertex(&mut self, depth: u32) {
@@ -166,6 +177,11 @@ impl IndependentPacket {
         let r = &mut self.rngs[lane];
         let u = r.f32();
         [u, r.f32()]
+    }
+
+    #[inline(always)]
+    pub fn lens(&mut self, lane: usize) -> [f32; 2] {
+        self.camera(lane)
     }
 
     #[inline(always)]
@@ -225,6 +241,14 @@ impl SobolPacket {
     #[inline(always)]
     pub fn camera(&mut self, lane: usize) -> [f32; 2] {
         [self.camera[0][lane], self.camera[1][lane]]
+    }
+
+    /// Computed per lane when asked (depth of field only).
+    #[inline(always)]
+    pub fn lens(&mut self, lane: usize) -> [f32; 2] {
+        let keys = DimKeys::new(self.key, dim::LENS);
+        let i = keys.shuffled(self.rindex[lane]);
+        [to_unit(keys.first(i)), to_unit(keys.second(i))]
     }
 
     #[inline(always)]

@@ -28,13 +28,18 @@
 //! - Area light: `power` in W over area `A`, one-sided Lambertian emitter of radiance
 //!   `L = power / (π A)`; shapes `rectangle` (`size` × `size_y`), `square`, `disk` (diameter
 //!   `size`), `ellipse`. Camera rays look through it unless `visible_to_camera = true`
-//!   (Blender's Ray Visibility ▸ Camera, off by default in Blender 4/5); point, spot and sun
-//!   lights are never seen by the camera. Rays that scattered always see area lights.
+//!   (Blender's Ray Visibility ▸ Camera, off by default in Blender 4/5); the same key makes the
+//!   sphere of a point or spot light with a `radius` visible to the camera (radiance
+//!   `I / (π r²)`, times the spot's cone mask), as in Cycles. Sun lights are never seen by the
+//!   camera. Rays that scattered always see area and sphere lights.
 //! - Sun: `strength` is the irradiance in W/m² on a surface facing the sun; `angle_deg` its
 //!   angular diameter (a cone of radiance `strength / Ω` that mirrors and glass reflect; below
 //!   ~0.16°, e.g. 0, a delta light they do not).
 //! - Emission (materials): radiance `emission_strength × emission_color` (W/m²/sr).
 //! - World: radiance `strength × color` (or × the image's texel).
+//! - Camera depth of field (`dof = { focus_distance = 2.0, aperture_fstop = 2.8 }`, Blender's
+//!   names; off when absent): a thin lens whose focal length is that of Blender's camera with a
+//!   24 mm sensor height, aperture radius `lens / (2 · f-stop)` as in Cycles (see [`Dof`]).
 //!
 //! Colours are linear Rec.709 RGB triples (`[1.0, 0.9, 0.8]`) or a blackbody temperature
 //! (`{ kelvin = 3200 }`, see [`crate::color::blackbody`]).
@@ -100,8 +105,8 @@ fn default_version() -> u32 {
     SCENE_VERSION
 }
 
-/// A pinhole camera. Give exactly one of `fov_y_deg` and `focal_px`, and either
-/// `position` + `look_at` (+ `up`) or `matrix`.
+/// A pinhole camera, or a thin lens with `dof`. Give exactly one of `fov_y_deg` and `focal_px`,
+/// and either `position` + `look_at` (+ `up`) or `matrix`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Camera {
@@ -131,6 +136,26 @@ pub struct Camera {
     /// camera's +X, +Y, +Z axes. Overrides `position` / `look_at` / `up` when given.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub matrix: Option<[[f32; 4]; 4]>,
+    /// Thin-lens depth of field (Blender's camera ▸ Depth of Field). Absent (the default): a
+    /// pinhole, everything sharp.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dof: Option<Dof>,
+}
+
+/// Thin-lens depth of field, named as Blender's camera DOF settings (the table's presence is
+/// Blender's `use_dof`). The lens is the one the Blender bridge gives the camera — a 24 mm high
+/// sensor, so focal length `lens = 12 mm / tan(fov_y / 2)` — and, as in Cycles, the aperture is
+/// a disk of radius `lens / (2 · aperture_fstop)` (lens in metres) centred on the camera
+/// position, in the plane of the image. Points at `focus_distance` along the viewing axis are
+/// sharp; a point at depth `z` spreads over a disk of radius `f · A · |1/focus_distance − 1/z|`
+/// pixels (`f` the focal length in pixels, `A` the aperture radius).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Dof {
+    /// Distance from the camera to the plane in focus, along the viewing axis (metres).
+    pub focus_distance: f32,
+    /// F-number: the aperture's diameter is the focal length over it.
+    pub aperture_fstop: f32,
 }
 
 fn default_up() -> [f32; 3] {
@@ -150,6 +175,21 @@ impl Camera {
             look_at: None,
             up: default_up(),
             matrix: None,
+            dof: None,
+        }
+    }
+
+    /// The focal length in millimetres of the camera Blender gets (24 mm sensor height).
+    pub fn lens_mm(&self) -> f32 {
+        12.0 / (0.5 * self.fov_y().to_radians()).tan()
+    }
+
+    /// Radius of the thin lens's aperture in metres (0 without depth of field): Cycles'
+    /// `lens · 1e-3 / (2 · aperture_fstop)`.
+    pub fn aperture_radius(&self) -> f32 {
+        match &self.dof {
+            Some(d) => self.lens_mm() * 1e-3 / (2.0 * d.aperture_fstop),
+            None => 0.0,
         }
     }
 
@@ -302,6 +342,14 @@ pub struct Material {
     pub metallic: f32,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub metallic_texture: Option<PathBuf>,
+    /// A tangent-space normal map, as Blender's Normal Map node (strength 1) feeding the
+    /// Principled BSDF's Normal: texel `c` (read as stored, "Non-Color") is the normal
+    /// `2c − 1` in the frame (tangent `T`, bitangent `B`, shading normal `N`), `T` along
+    /// increasing `u`, `B` towards the texture's top row (Blender's increasing `v`), both made
+    /// perpendicular to `N` (per triangle, from its UVs). Needs UVs. (Cycles also bends
+    /// strongly tilted normals back towards the surface's, which we do not: `BENCHMARKS.md`.)
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normal_texture: Option<PathBuf>,
     /// Blender's "Transmission Weight".
     #[serde(default)]
     pub transmission: f32,
@@ -342,6 +390,7 @@ impl Default for Material {
             roughness_texture: None,
             metallic: 0.0,
             metallic_texture: None,
+            normal_texture: None,
             transmission: 0.0,
             ior: default_ior(),
             specular_ior_level: default_specular_level(),
@@ -439,6 +488,10 @@ pub enum Light {
         radius: f32,
         #[serde(default)]
         color: Color,
+        /// Whether camera rays see the light's sphere (Blender's Ray Visibility ▸ Camera; off by
+        /// default). Only a light with a `radius` has a sphere to see.
+        #[serde(default, skip_serializing_if = "is_false")]
+        visible_to_camera: bool,
     },
     Spot {
         #[serde(default)]
@@ -460,6 +513,9 @@ pub enum Light {
         radius: f32,
         #[serde(default)]
         color: Color,
+        /// As for point lights: camera rays see the sphere (masked by the cone) when asked.
+        #[serde(default, skip_serializing_if = "is_false")]
+        visible_to_camera: bool,
     },
     Area {
         #[serde(default)]
@@ -609,17 +665,26 @@ impl Light {
             }
             Ok(())
         };
+        let seen_sphere = |visible: bool, radius: f32| {
+            if visible && !(radius > 0.0) {
+                Err("visible_to_camera needs a radius > 0 (a light without one has no sphere to see)".to_string())
+            } else {
+                Ok(())
+            }
+        };
         self.color().check("color")?;
         match self {
             Light::Point {
                 position,
                 power,
                 radius,
+                visible_to_camera,
                 ..
             } => {
                 finite3(position, "position")?;
                 nonneg(*power, "power")?;
-                nonneg(*radius, "radius")
+                nonneg(*radius, "radius")?;
+                seen_sphere(*visible_to_camera, *radius)
             }
             Light::Spot {
                 position,
@@ -629,12 +694,14 @@ impl Light {
                 spot_size_deg,
                 blend,
                 radius,
+                visible_to_camera,
                 ..
             } => {
                 finite3(position, "position")?;
                 dir(direction, look_at, position)?;
                 nonneg(*power, "power")?;
                 nonneg(*radius, "radius")?;
+                seen_sphere(*visible_to_camera, *radius)?;
                 if !(spot_size_deg.is_finite() && *spot_size_deg > 0.0 && *spot_size_deg <= 180.0) {
                     return Err(format!("spot_size_deg {spot_size_deg} must be in (0, 180]"));
                 }
@@ -828,28 +895,6 @@ impl Scene {
         self.validate_at(Path::new("<scene>"))
     }
 
-    /// What the native renderer draws differently from Cycles in this scene, one sentence per
-    /// object (empty when nothing): today only rough transmission, which is rendered as smooth
-    /// glass (see [`crate::material`]).
-    pub fn approximations(&self) -> Vec<String> {
-        self.objects
-            .iter()
-            .enumerate()
-            .filter(|(_, o)| {
-                let m = &o.material;
-                // (A roughness texture multiplies `roughness`, so 0 stays smooth.)
-                m.transmission > 0.0 && m.metallic < 1.0 && m.roughness > 0.0
-            })
-            .map(|(i, o)| {
-                let name = if o.name.is_empty() { format!("object {i}") } else { format!("object {:?}", o.name) };
-                format!(
-                    "{name}: transmission {} with roughness {} is rendered as smooth glass here (Cycles renders it rough)",
-                    o.material.transmission, o.material.roughness
-                )
-            })
-            .collect()
-    }
-
     /// Checks that every referenced file (meshes, textures, world image) exists.
     pub fn validate_files(&self) -> Result<()> {
         self.validate_files_at(Path::new("<scene>"))
@@ -888,6 +933,20 @@ impl Scene {
                 return Err(bad(format!("camera: focal_px {f} must be positive")))
             }
             _ => {}
+        }
+        if let Some(d) = &c.dof {
+            if !(d.focus_distance.is_finite() && d.focus_distance > 0.0) {
+                return Err(bad(format!(
+                    "camera: dof focus_distance {} must be positive",
+                    d.focus_distance
+                )));
+            }
+            if !(d.aperture_fstop.is_finite() && d.aperture_fstop > 0.0) {
+                return Err(bad(format!(
+                    "camera: dof aperture_fstop {} must be positive",
+                    d.aperture_fstop
+                )));
+            }
         }
         if let Some(m) = c.matrix {
             if m.iter().flatten().any(|v| !v.is_finite()) {
@@ -1001,6 +1060,7 @@ impl Scene {
                 (&m.base_color_texture, "base_color_texture"),
                 (&m.roughness_texture, "roughness_texture"),
                 (&m.metallic_texture, "metallic_texture"),
+                (&m.normal_texture, "normal_texture"),
             ] {
                 if let Some(t) = t {
                     check(t, format!("{who}: {what}"))?;
@@ -1043,34 +1103,6 @@ pub(crate) fn normalize(a: [f32; 3]) -> [f32; 3] {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn rough_transmission_is_reported_as_an_approximation() {
-        let scene = |glass: &str| {
-            Scene::from_toml_str(&format!(
-                "[camera]\nwidth = 4\nheight = 4\nfov_y_deg = 40.0\n\n\
-                 [[objects]]\nname = \"floor\"\nshape = {{ type = \"quad\", size = [1.0, 1.0] }}\n\
-                 material = {{ roughness = 0.5 }}\n\n\
-                 [[objects]]\nshape = {{ type = \"sphere\", radius = 0.5 }}\nmaterial = {{ {glass} }}\n"
-            ))
-            .unwrap()
-        };
-        // Rough glass: one note naming the (unnamed, second) object and its values.
-        let notes = scene("transmission = 1.0, roughness = 0.3").approximations();
-        assert_eq!(notes.len(), 1, "{notes:?}");
-        assert!(
-            notes[0].starts_with("object 1:") && notes[0].contains("roughness 0.3"),
-            "{notes:?}"
-        );
-        // Smooth glass, rough opaque surfaces and rough metal with a transmission value: nothing.
-        for m in [
-            "transmission = 1.0, roughness = 0.0",
-            "roughness = 0.8",
-            "transmission = 1.0, metallic = 1.0, roughness = 0.4",
-        ] {
-            assert!(scene(m).approximations().is_empty(), "{m}");
-        }
-    }
 
     const EXAMPLE: &str = r#"
 [camera]

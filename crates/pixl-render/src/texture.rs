@@ -1,6 +1,7 @@
 //! Image textures: bilinear lookups with repeat wrapping, UV `v = 0` at the image's top row.
 //! PNG/JPEG colour textures are sRGB-decoded to linear; EXR is linear as stored; scalar
-//! textures (roughness, metallic) read their first channel as-is (Blender's "Non-Color").
+//! textures (roughness, metallic) read their first channel as-is (Blender's "Non-Color"), data
+//! textures (normal maps) their RGB as-is.
 use crate::error::Result;
 use crate::math::V3;
 use pixl_core::Image;
@@ -24,6 +25,16 @@ impl Texture {
             } else {
                 v
             }
+        });
+        Ok(Texture { img: rgb })
+    }
+
+    /// An RGB data texture (as stored, no colour decoding; grey images repeat their channel).
+    pub fn load_data(path: &Path) -> Result<Self> {
+        let img = pixl_core::io::read_image(path)?;
+        let ch = img.channels;
+        let rgb = Image::from_fn(img.width, img.height, 3, |x, y, c| {
+            img.get(x, y, if ch >= 3 { c } else { 0 })
         });
         Ok(Texture { img: rgb })
     }

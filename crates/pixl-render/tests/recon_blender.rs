@@ -11,6 +11,7 @@ height = 24
 fov_y_deg = 40.0
 position = [0.0, 1.0, 4.0]
 look_at = [0.0, 0.5, 0.0]
+dof = { focus_distance = 3.5, aperture_fstop = 2.8 }
 
 [[objects]]
 name = "floor's quad"
@@ -46,6 +47,8 @@ power = 50.0
 type = "point"
 position = [-1.0, 2.0, 1.0]
 power = 30.0
+radius = 0.2
+visible_to_camera = true
 
 [world]
 color = [0.1, 0.1, 0.1]
@@ -80,12 +83,19 @@ fn script_is_valid_python_with_exactly_the_passes() {
         .collect();
     assert_eq!(types, ["AREA", "SUN", "SPOT", "POINT"]);
     assert_eq!(desc["lights"][0]["energy"], 100.0);
-    // Camera visibility: the area light asked for it; the script sets it on every light
-    // object (off unless asked, Blender 4/5's default too).
+    // Camera visibility: the area and point lights asked for it; the script sets it on every
+    // light object (off unless asked, Blender 4/5's default too).
     assert_eq!(desc["lights"][0]["visible_camera"], true);
     assert!(desc["lights"][1].get("visible_camera").is_none());
+    assert_eq!(desc["lights"][2]["visible_camera"], false);
+    assert_eq!(desc["lights"][3]["visible_camera"], true);
+    assert_eq!(desc["lights"][3]["radius"], 0.2f32 as f64);
     assert!(text.contains("ob.visible_camera = bool(l.get(\"visible_camera\", False))"));
     assert_eq!(desc["objects"][0]["name"], "floor's quad");
+    // Depth of field: Blender's own settings, switched on only when the scene has them.
+    assert_eq!(desc["camera"]["dof"]["focus_distance"], 3.5);
+    assert_eq!(desc["camera"]["dof"]["aperture_fstop"], 2.8f32 as f64);
+    assert!(text.contains("data.dof.use_dof = dof is not None"));
     // Light frames: local −Z is the direction of travel (sun (0.3, −1, 0.2) normalised).
     let m = &desc["lights"][1]["matrix"];
     let d = [0.3f64, -1.0, 0.2];

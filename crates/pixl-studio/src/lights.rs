@@ -249,6 +249,7 @@ impl StudioLight {
                 power: self.power,
                 radius: self.size,
                 color: self.color,
+                visible_to_camera: false,
             },
             LightKind::Spot => Light::Spot {
                 name,
@@ -260,6 +261,7 @@ impl StudioLight {
                 blend: self.blend,
                 radius: self.size,
                 color: self.color,
+                visible_to_camera: false,
             },
             LightKind::Area => Light::Area {
                 name,

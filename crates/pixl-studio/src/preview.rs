@@ -228,6 +228,7 @@ mod tests {
             power: 100.0,
             radius: 0.0,
             color: Color::Rgb([1.0, 1.0, 1.0]),
+            visible_to_camera: false,
         };
         let img = shade(&g, &coarse.geom, &[light], None, true);
         let want = 0.5 / PI * 100.0 / (4.0 * PI);
@@ -243,6 +244,7 @@ mod tests {
             power: 100.0,
             radius: 0.0,
             color: Color::Rgb([1.0, 1.0, 1.0]),
+            visible_to_camera: false,
         };
         let dark = shade(&g, &coarse.geom, &[behind], None, true);
         assert_eq!(dark.get(4, 4, 0), 0.0);

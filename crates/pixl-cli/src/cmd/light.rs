@@ -150,7 +150,8 @@ pub struct LightSpec {
     /// Angular diameter in degrees (sun; default 0.526).
     #[arg(long)]
     pub angle: Option<f32>,
-    /// Camera rays see the emitter itself (area; Blender's Ray Visibility ▸ Camera). Off by
+    /// Camera rays see the emitter itself (area; point and spot with a --radius: their sphere;
+    /// Blender's Ray Visibility ▸ Camera). Off by
     /// default, as in Blender: the light still lights the scene and shows in reflections.
     #[arg(long)]
     pub visible_to_camera: bool,
@@ -201,7 +202,7 @@ impl LightSpec {
             ("--size-y", self.size_y.is_some(), &[Area]),
             ("--shape", self.shape.is_some(), &[Area]),
             ("--angle", self.angle.is_some(), &[Sun]),
-            ("--visible-to-camera", self.visible_to_camera, &[Area]),
+            ("--visible-to-camera", self.visible_to_camera, &[Point, Spot, Area]),
             ("--at-pixel", self.at_pixel.is_some(), positioned),
             ("--offset", self.offset.is_some(), positioned),
             ("--from", self.from.is_some(), all),
@@ -238,7 +239,7 @@ impl LightSpec {
                     _ => kinds.join(""),
                 };
                 let why = if flag == "--visible-to-camera" {
-                    " (point, spot and sun lights are never seen by the camera, as in Blender)"
+                    " (a sun is never seen by the camera, as in Blender)"
                 } else if flag == "--at-pixel" || flag == "--distance" || flag == "--offset" {
                     " (a sun has no position: use --from, --azimuth/--elevation or --direction)"
                 } else {
@@ -286,6 +287,12 @@ impl LightSpec {
             if r < 0.0 {
                 bail!("--radius {r}: must be non-negative");
             }
+        }
+        if self.visible_to_camera && t != LightType::Area && !self.radius.is_some_and(|r| r > 0.0) {
+            bail!(
+                "--visible-to-camera on a {} light needs --radius R > 0 (the camera sees its sphere; a light without one has none)",
+                t.name()
+            );
         }
         if let Some(d) = self.distance {
             if d <= 0.0 {
@@ -430,6 +437,7 @@ impl LightSpec {
                 power: power()?,
                 radius: self.radius.unwrap_or(0.0),
                 color,
+                visible_to_camera: self.visible_to_camera,
             },
             Spot => Light::Spot {
                 name,
@@ -441,6 +449,7 @@ impl LightSpec {
                 blend: self.blend.unwrap_or(0.15),
                 radius: self.radius.unwrap_or(0.0),
                 color,
+                visible_to_camera: self.visible_to_camera,
             },
             Area => Light::Area {
                 name,

@@ -654,9 +654,6 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
         seed: args.seed,
         max_bounces: args.bounces,
     };
-    for note in scene.approximations() {
-        tracing::warn!("{note}");
-    }
     let bar = ticking(ctx.progress(work.1 as u64, "rendering"));
     let film = render(&scene, &opts, &|done, _total| bar.set_position(done as u64))
         .with_context(|| format!("rendering {}", scene_path.display()))?;

@@ -87,9 +87,6 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         seed: args.seed,
         max_bounces: args.bounces,
     };
-    for note in scene.approximations() {
-        tracing::warn!("{note}");
-    }
     let (w, h) = opts.resolution(&scene);
     let bar = ctx.progress(h as u64, "rendering");
     let t0 = std::time::Instant::now();
