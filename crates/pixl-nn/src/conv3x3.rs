@@ -156,8 +156,11 @@ pub fn conv3x3_tiled(
     if !(stride == 1 || stride == 2) {
         candle_core::bail!("3x3 convolution: stride {stride} (1 or 2 supported)");
     }
+    if h == 0 || wd == 0 {
+        candle_core::bail!("3x3 convolution of an empty {h}x{wd} input");
+    }
     let o = w.matrix.dim(0)?;
-    let (ho, wo) = ((h.max(1) - 1) / stride + 1, (wd.max(1) - 1) / stride + 1);
+    let (ho, wo) = ((h - 1) / stride + 1, (wd - 1) / stride + 1);
     let plane = ho * wo;
     let mut out = vec![0f32; b * o * plane];
     if let Some(r) = epi.residual {
@@ -170,7 +173,7 @@ pub fn conv3x3_tiled(
             candle_core::bail!("bias of {} values for {o} output channels", bias.len());
         }
     }
-    if out.is_empty() || h == 0 || wd == 0 {
+    if out.is_empty() {
         return Tensor::from_vec(out, (b, o, ho, wo), xs.device());
     }
     let xs = xs.contiguous()?;
@@ -400,6 +403,8 @@ mod tests {
                 .unwrap();
             let want_relu = (want_relu + &skip).unwrap().relu().unwrap();
             let got_relu = conv3x3_tiled(&xs, &im2col, stride, true, &epi, 5).unwrap();
+            let empty = Tensor::zeros((1, 5, 0, 3), candle_core::DType::F32, &dev).unwrap();
+            assert!(conv3x3(&empty, &im2col, stride, &epi).is_err());
             assert!(
                 max_abs(&got_relu, &want_relu) < 1e-4,
                 "input ReLU, stride {stride} {h}x{w}"
