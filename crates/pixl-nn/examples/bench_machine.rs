@@ -116,32 +116,38 @@ fn bandwidth(t: usize) {
     }
 }
 
+/// `M×K · K×N` products, best of 7. `B` is read row-major `(K, N)`, or — `transposed` — as a
+/// linear layer reads its weight: `Wᵀ` with `W` stored `(N, K)` row-major.
 fn gemm_rate(t: usize) {
-    let shapes: [(&str, usize, usize, usize); 10] = [
-        ("paper qkv      ", 1032, 1024, 3072),
-        ("paper mlp fc1  ", 1032, 1024, 4096),
-        ("paper mlp fc2  ", 1032, 4096, 1024),
-        ("paper proj     ", 1032, 1024, 1024),
-        ("small mlp fc1  ", 1028, 384, 1536),
-        ("small mlp fc2  ", 1028, 1536, 384),
-        ("conv 3x3 64->32", 32, 576, 1024),
-        ("conv 3x3 256   ", 256, 2304, 1024),
-        ("conv 1x1 128   ", 128, 128, 65536),
-        ("conv 1x1 32->6 ", 6, 32, 262_144),
+    let shapes: [(&str, usize, usize, usize, bool); 12] = [
+        ("paper qkv      ", 1032, 1024, 3072, false),
+        ("paper mlp fc1  ", 1032, 1024, 4096, false),
+        ("paper mlp fc2  ", 1032, 4096, 1024, false),
+        ("paper proj     ", 1032, 1024, 1024, false),
+        ("small mlp fc1  ", 1028, 384, 1536, false),
+        ("small mlp fc2  ", 1028, 1536, 384, false),
+        ("conv 3x3 64->32", 32, 576, 1024, false),
+        ("conv 3x3 256   ", 256, 2304, 1024, false),
+        ("conv 1x1 128   ", 128, 128, 65536, false),
+        ("conv 1x1 32->6 ", 6, 32, 262_144, false),
+        ("paper mlp fc1 Wt", 1032, 1024, 4096, true),
+        ("paper mlp fc2 Wt", 1032, 4096, 1024, true),
     ];
-    for (name, m, k, n) in shapes {
+    let par = if t > 1 {
+        gemm::Parallelism::Rayon(t)
+    } else {
+        gemm::Parallelism::None
+    };
+    for (name, m, k, n, transposed) in shapes {
         let a: Vec<f32> = (0..m * k).map(|i| ((i * 7919) % 1000) as f32 * 1e-3).collect();
         let b: Vec<f32> = (0..k * n).map(|i| ((i * 104_729) % 1000) as f32 * 1e-3).collect();
+        // (column stride, row stride) of B as a K×N matrix.
+        let (b_cs, b_rs) = if transposed { (k as isize, 1) } else { (1, n as isize) };
         let mut c = vec![0f32; m * n];
-        let par = if t > 1 {
-            gemm::Parallelism::Rayon(t)
-        } else {
-            gemm::Parallelism::None
-        };
         let mut best = f64::INFINITY;
         for _ in 0..7 {
             let start = Instant::now();
-            // SAFETY: row-major A (m×k), B (k×n), C (m×n), all of those sizes.
+            // SAFETY: row-major A (m×k) and C (m×n); B (k×n) of k·n values with the strides above.
             unsafe {
                 gemm::gemm(
                     m,
@@ -155,8 +161,8 @@ fn gemm_rate(t: usize) {
                     1,
                     k as isize,
                     b.as_ptr(),
-                    1,
-                    n as isize,
+                    b_cs,
+                    b_rs,
                     0.0f32,
                     1.0f32,
                     false,
@@ -176,58 +182,10 @@ fn gemm_rate(t: usize) {
     }
 }
 
-/// `X (m×k) · Wᵀ` with `W` stored `(n, k)` row-major, as a linear layer reads its weight.
-fn gemm_rate_transposed(t: usize) {
-    for (name, m, k, n) in [
-        ("paper mlp fc1 Wt", 1032, 1024, 4096),
-        ("paper mlp fc2 Wt", 1032, 4096, 1024),
-    ] {
-        let a: Vec<f32> = (0..m * k).map(|i| ((i * 7919) % 1000) as f32 * 1e-3).collect();
-        let w: Vec<f32> = (0..k * n).map(|i| ((i * 104_729) % 1000) as f32 * 1e-3).collect();
-        let mut c = vec![0f32; m * n];
-        let mut best = f64::INFINITY;
-        for _ in 0..7 {
-            let start = Instant::now();
-            // SAFETY: row-major A (m×k), W (n×k) read as Wᵀ (k×n: row stride 1, column stride k), C (m×n).
-            unsafe {
-                gemm::gemm(
-                    m,
-                    n,
-                    k,
-                    c.as_mut_ptr(),
-                    1,
-                    n as isize,
-                    false,
-                    a.as_ptr(),
-                    1,
-                    k as isize,
-                    w.as_ptr(),
-                    k as isize,
-                    1,
-                    0.0f32,
-                    1.0f32,
-                    false,
-                    false,
-                    false,
-                    gemm::Parallelism::Rayon(t),
-                );
-            }
-            best = best.min(start.elapsed().as_secs_f64());
-        }
-        std::hint::black_box(&c);
-        let flops = 2.0 * (m * k * n) as f64;
-        println!(
-            "gemm {name} M={m:<5} K={k:<5} N={n:<5} {t} thread(s): {:>7.1} GFLOP/s",
-            flops / best / 1e9
-        );
-    }
-}
-
 fn main() {
     let t = threads();
     rayon::ThreadPoolBuilder::new().num_threads(t).build_global().ok();
     fma_peak(t);
     bandwidth(t);
     gemm_rate(t);
-    gemm_rate_transposed(t);
 }

@@ -14,7 +14,7 @@
 //! `(O, C, 3, 3)`, `out[o, y, x] = b[o] + Σ_{c,ky,kx} w[o, c, ky, kx]·in[c, s·y + ky − 1,
 //! s·x + kx − 1]` (zero outside), output `(B, O, ⌊(H − 1)/s⌋ + 1, ⌊(W − 1)/s⌋ + 1)`.
 use crate::fused::{self, bias_act_channels, bias_residual_channels, Act, Vector};
-use candle_core::{Layout, Module, Result, Storage, Tensor};
+use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use rayon::prelude::*;
 
@@ -54,14 +54,6 @@ pub struct Epilogue<'a> {
     /// Added after the bias, same shape as the output.
     pub residual: Option<&'a [f32]>,
     pub act: Act,
-}
-
-/// The f32 values of a contiguous CPU tensor's storage, borrowed.
-fn cpu_f32_slice<'a>(storage: &'a Storage, layout: &Layout) -> Result<&'a [f32]> {
-    let Storage::Cpu(cpu) = storage else {
-        candle_core::bail!("3x3 convolution: expected a CPU tensor");
-    };
-    fused::slice(cpu, layout, "3x3 convolution")
 }
 
 /// `(B, C, H, W)` f32 CPU tensor → `(B, O, H', W')`, tiles of [`tile_pixels`] output pixels.
@@ -178,9 +170,9 @@ pub fn conv3x3_tiled(
     }
     let xs = xs.contiguous()?;
     let (storage, layout) = xs.storage_and_layout();
-    let src = cpu_f32_slice(&storage, layout)?;
+    let src = fused::storage_slice(&storage, layout, "3x3 convolution")?;
     let (w_storage, w_layout) = w.matrix.storage_and_layout();
-    let weights = cpu_f32_slice(&w_storage, w_layout)?;
+    let weights = fused::storage_slice(&w_storage, w_layout, "3x3 convolution")?;
     let k = 9 * c;
     let g = Geom {
         c,
@@ -253,7 +245,7 @@ pub fn conv3x3_tiled(
     if tiles < threads {
         let mut cols = vec![0f32; k * tile];
         for ti in 0..tiles {
-            run(ti, &mut cols, gemm::Parallelism::Rayon(threads));
+            run(ti, &mut cols, fused::gemm_parallelism());
         }
     } else {
         let tasks = (4 * threads).min(tiles);
@@ -379,18 +371,7 @@ mod tests {
             let im2col = Im2colWeight::new(&wt).unwrap();
             let got = conv3x3(&xs, &im2col, stride, &epi).unwrap();
             assert_eq!(got.dims(), want.dims());
-            let max_abs = |a: &Tensor, b: &Tensor| -> f32 {
-                (a - b)
-                    .unwrap()
-                    .abs()
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .max(0)
-                    .unwrap()
-                    .to_scalar::<f32>()
-                    .unwrap()
-            };
+            let max_abs = |a: &Tensor, b: &Tensor| crate::testing::max_abs_diff(a, b).unwrap();
             assert!(max_abs(&got, &want) < 1e-4, "stride {stride} {h}x{w}");
             // Tiles of one pixel, and tiles that straddle output rows, give the same values.
             for tile in [1, 7] {

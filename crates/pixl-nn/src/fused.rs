@@ -71,6 +71,23 @@ pub(crate) fn slice<'a>(storage: &'a CpuStorage, layout: &Layout, what: &str) ->
     }
 }
 
+/// The f32 values of a contiguous CPU tensor's storage, as `storage_and_layout` gives it,
+/// borrowed; `what` names the operand in the error otherwise.
+pub(crate) fn storage_slice<'a>(storage: &'a candle_core::Storage, layout: &Layout, what: &str) -> Result<&'a [f32]> {
+    let candle_core::Storage::Cpu(cpu) = storage else {
+        candle_core::bail!("{what}: expected a CPU tensor");
+    };
+    slice(cpu, layout, what)
+}
+
+/// The `gemm` crate's parallelism over rayon's current pool.
+pub(crate) fn gemm_parallelism() -> gemm::Parallelism {
+    match rayon::current_num_threads() {
+        0 | 1 => gemm::Parallelism::None,
+        threads => gemm::Parallelism::Rayon(threads),
+    }
+}
+
 /// Which axis a per-element vector indexes.
 #[derive(Clone, Copy, Debug)]
 enum Axis {
@@ -430,17 +447,8 @@ pub fn linear(xs: &Tensor, layer: &candle_nn::Linear, act: Act) -> Result<Tensor
         let w = w.contiguous()?;
         let (xs_storage, xs_layout) = xs.storage_and_layout();
         let (w_storage, w_layout) = w.storage_and_layout();
-        let (candle_core::Storage::Cpu(xc), candle_core::Storage::Cpu(wc)) = (&*xs_storage, &*w_storage) else {
-            candle_core::bail!("linear: expected CPU tensors");
-        };
-        let x = slice(xc, xs_layout, "linear input")?;
-        let wv = slice(wc, w_layout, "linear weight")?;
-        let threads = rayon::current_num_threads();
-        let par = if threads > 1 {
-            gemm::Parallelism::Rayon(threads)
-        } else {
-            gemm::Parallelism::None
-        };
+        let x = storage_slice(&xs_storage, xs_layout, "linear input")?;
+        let wv = storage_slice(&w_storage, w_layout, "linear weight")?;
         if rows > 0 && n > 0 {
             // SAFETY: dst (rows × n, row stride n) is `out`; lhs (rows × k, row stride k) is `x`;
             // rhs = Wᵀ (k × n): element (i, j) is W[j·k + i] (row stride 1, column stride k).
@@ -464,7 +472,7 @@ pub fn linear(xs: &Tensor, layer: &candle_nn::Linear, act: Act) -> Result<Tensor
                     false,
                     false,
                     false,
-                    par,
+                    gemm_parallelism(),
                 );
             }
         }
@@ -516,17 +524,9 @@ pub fn conv1x1(xs: &Tensor, weight: &Tensor, bias: Option<&Tensor>, act: Act) ->
     {
         let (xs_storage, xs_layout) = xs.storage_and_layout();
         let (w_storage, w_layout) = weight.storage_and_layout();
-        let (candle_core::Storage::Cpu(xc), candle_core::Storage::Cpu(wcpu)) = (&*xs_storage, &*w_storage) else {
-            candle_core::bail!("1x1 convolution: expected CPU tensors");
-        };
-        let x = slice(xc, xs_layout, "1x1 convolution input")?;
-        let wv = slice(wcpu, w_layout, "1x1 convolution weight")?;
-        let threads = rayon::current_num_threads();
-        let par = if threads > 1 {
-            gemm::Parallelism::Rayon(threads)
-        } else {
-            gemm::Parallelism::None
-        };
+        let x = storage_slice(&xs_storage, xs_layout, "1x1 convolution input")?;
+        let wv = storage_slice(&w_storage, w_layout, "1x1 convolution weight")?;
+        let par = gemm_parallelism();
         if px > 0 && o > 0 && c > 0 {
             for bi in 0..b {
                 // SAFETY: dst (o × px, row stride px) is image bi's planes of `out`; lhs (o × c,
@@ -647,10 +647,7 @@ pub fn to_channels_last(xs: &Tensor) -> Result<Tensor> {
     let px = h * w;
     let out = {
         let (storage, layout) = xs.storage_and_layout();
-        let candle_core::Storage::Cpu(cpu) = &*storage else {
-            candle_core::bail!("channels-last copy: expected a CPU tensor");
-        };
-        let src = slice(cpu, layout, "channels-last copy")?;
+        let src = storage_slice(&storage, layout, "channels-last copy")?;
         by_pixel_blocks(b, c, px, true, |bi, p0, n, tile| {
             for ch in 0..c {
                 let plane = &src[(bi * c + ch) * px + p0..][..n];
@@ -675,10 +672,7 @@ pub fn to_channels_first(xs: &Tensor) -> Result<Tensor> {
     let px = h * w;
     let out = {
         let (storage, layout) = xs.storage_and_layout();
-        let candle_core::Storage::Cpu(cpu) = &*storage else {
-            candle_core::bail!("channels-first copy: expected a CPU tensor");
-        };
-        let src = slice(cpu, layout, "channels-first copy")?;
+        let src = storage_slice(&storage, layout, "channels-first copy")?;
         by_pixel_blocks(b, c, px, false, |bi, p0, n, tile| {
             let rows = &src[(bi * px + p0) * c..][..n * c];
             for ch in 0..c {
@@ -714,11 +708,8 @@ pub fn add_scaled_channels_last(xs: &Tensor, ys: &Tensor, gamma: &Tensor) -> Res
     let out = {
         let (xs_storage, xs_layout) = xs.storage_and_layout();
         let (ys_storage, ys_layout) = ys.storage_and_layout();
-        let (candle_core::Storage::Cpu(xc), candle_core::Storage::Cpu(yc)) = (&*xs_storage, &*ys_storage) else {
-            candle_core::bail!("layer-scaled residual: expected CPU tensors");
-        };
-        let x = slice(xc, xs_layout, "layer-scaled residual")?;
-        let y = slice(yc, ys_layout, "layer-scaled residual")?;
+        let x = storage_slice(&xs_storage, xs_layout, "layer-scaled residual")?;
+        let y = storage_slice(&ys_storage, ys_layout, "layer-scaled residual")?;
         by_pixel_blocks(b, c, px, false, |bi, p0, n, tile| {
             let rows = &y[(bi * px + p0) * c..][..n * c];
             for ch in 0..c {
@@ -880,18 +871,9 @@ mod tests {
     use super::*;
     use candle_core::Device;
 
-    fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
+    fn max_diff(a: &Tensor, b: &Tensor) -> f64 {
         assert_eq!(a.dims(), b.dims());
-        (a - b)
-            .unwrap()
-            .abs()
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .max(0)
-            .unwrap()
-            .to_scalar::<f32>()
-            .unwrap()
+        crate::testing::max_abs_diff(a, b).unwrap()
     }
 
     /// The fused linear (bias prefilled, GEMM in place, activation in place) against an f64

@@ -104,10 +104,7 @@ fn resize_bilinear_cpu(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
     let mut out = vec![0f32; b * c * h * w];
     {
         let (storage, layout) = xs.storage_and_layout();
-        let candle_core::Storage::Cpu(cpu) = &*storage else {
-            candle_core::bail!("bilinear resize: expected a CPU tensor");
-        };
-        let src = crate::fused::slice(cpu, layout, "bilinear resize")?;
+        let src = crate::fused::storage_slice(&storage, layout, "bilinear resize")?;
         out.par_chunks_mut(w).with_min_len(8).enumerate().for_each(|(r, row)| {
             let (plane, y) = (r / h, r % h);
             let (y0, y1, wy0, wy1) = ty[y];
