@@ -572,12 +572,12 @@ mod tests {
         }
     }
 
-    /// `∫ f·cos dωi` per lobe over the upper hemisphere by a (θ, φ) midpoint rule in f64.
-    fn integrate(b: &Bsdf) -> (f64, f64) {
-        let (nt, np) = (700, 360);
-        let (mut d, mut g) = (0.0, 0.0);
+    /// `Σ f(ω)·dω` over directions with polar angle up to `th_max`, by a (θ, φ) midpoint rule
+    /// of `nt × np` cells in f64.
+    fn midpoint(th_max: f64, nt: usize, np: usize, mut f: impl FnMut(V3, f64)) {
         for i in 0..nt {
-            let th = (i as f64 + 0.5) / nt as f64 * PI / 2.0;
+            let th = (i as f64 + 0.5) / nt as f64 * th_max;
+            let dw = th.sin() * (th_max / nt as f64) * (2.0 * PI / np as f64);
             for j in 0..np {
                 let ph = (j as f64 + 0.5) / np as f64 * 2.0 * PI;
                 let wi = V3::new(
@@ -585,12 +585,19 @@ mod tests {
                     (th.sin() * ph.sin()) as f32,
                     th.cos() as f32,
                 );
-                let e = b.eval(wi);
-                let dw = th.sin() * (PI / 2.0 / nt as f64) * (2.0 * PI / np as f64);
-                d += e.diffuse.x as f64 * dw;
-                g += e.glossy.x as f64 * dw;
+                f(wi, dw);
             }
         }
+    }
+
+    /// `∫ f·cos dωi` per lobe over the upper hemisphere by a (θ, φ) midpoint rule in f64.
+    fn integrate(b: &Bsdf) -> (f64, f64) {
+        let (mut d, mut g) = (0.0, 0.0);
+        midpoint(PI / 2.0, 700, 360, |wi, dw| {
+            let e = b.eval(wi);
+            d += e.diffuse.x as f64 * dw;
+            g += e.glossy.x as f64 * dw;
+        });
         (d, g)
     }
 
@@ -634,24 +641,13 @@ mod tests {
     /// `∫ f·|cos θi| dωi` per lobe (diffuse, glossy, transmission) over the whole sphere, by a
     /// (θ, φ) midpoint rule in f64.
     fn integrate_sphere(b: &Bsdf) -> [f64; 3] {
-        let (nt, np) = (3000, 720);
         let mut sum = [0.0f64; 3];
-        for i in 0..nt {
-            let th = (i as f64 + 0.5) / nt as f64 * PI;
-            let dw = th.sin() * (PI / nt as f64) * (2.0 * PI / np as f64);
-            for j in 0..np {
-                let ph = (j as f64 + 0.5) / np as f64 * 2.0 * PI;
-                let wi = V3::new(
-                    (th.sin() * ph.cos()) as f32,
-                    (th.sin() * ph.sin()) as f32,
-                    th.cos() as f32,
-                );
-                let e = b.eval(wi);
-                for (k, v) in [e.diffuse.x, e.glossy.x, e.transmission.x].into_iter().enumerate() {
-                    sum[k] += v as f64 * dw;
-                }
+        midpoint(PI, 3000, 720, |wi, dw| {
+            let e = b.eval(wi);
+            for (k, v) in [e.diffuse.x, e.glossy.x, e.transmission.x].into_iter().enumerate() {
+                sum[k] += v as f64 * dw;
             }
-        }
+        });
         sum
     }
 
