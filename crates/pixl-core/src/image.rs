@@ -190,9 +190,10 @@ pub fn linear_to_srgb(v: f32) -> f32 {
     }
 }
 
-/// Reinhard tonemap with auto-exposure (key 0.18 on the log-average luminance), then sRGB
-/// encoding: how linear HDR renders are shown (paper §4.2, "Reinhard auto-exposure").
-pub fn tonemap_reinhard(img: &Image) -> Image {
+/// The exposure that maps the log-average luminance (Rec. 709 weights on the first three
+/// channels, or the single channel; `10⁻⁴` added before the logarithm) to the key 0.18: the
+/// auto-exposure of [`tonemap_reinhard`] and [`tonemap_camera`].
+pub fn auto_exposure(img: &Image) -> f32 {
     let ch = img.channels;
     let lum = |px: &[f32]| {
         if ch >= 3 {
@@ -209,16 +210,108 @@ pub fn tonemap_reinhard(img: &Image) -> Image {
         .sum::<f64>()
         / n)
         .exp();
-    let scale = (0.18 / log_avg.max(1e-8)) as f32;
+    (0.18 / log_avg.max(1e-8)) as f32
+}
+
+/// Reinhard tonemap with auto-exposure (key 0.18 on the log-average luminance), then sRGB
+/// encoding: how linear HDR renders are shown (paper §4.2, "Reinhard auto-exposure").
+pub fn tonemap_reinhard(img: &Image) -> Image {
+    let scale = auto_exposure(img);
     img.map(|v| {
         let v = v.max(0.0) * scale;
         linear_to_srgb(v / (1.0 + v))
     })
 }
 
+/// The filmic curve of [`tonemap_camera`]: Narkowicz's fit of the ACES reference rendering
+/// transform, `x(2.51x + 0.03) / (x(2.43x + 0.59) + 0.14)`, clamped to [0, 1] — a toe that
+/// deepens shadows and a shoulder that rolls highlights off (0.18 → 0.267, 1 → 0.80, 4 → 0.97).
+pub fn filmic(x: f32) -> f32 {
+    let x = x.max(0.0);
+    (x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14)).clamp(0.0, 1.0)
+}
+
+/// How a camera shows a linear HDR render: the exposure of [`tonemap_reinhard`] (key 0.18 on
+/// the log-average luminance) lowered where needed so that the 99th-percentile luminance lands
+/// at no more than 3 (a small bright region does not blow out the picture: 3 → 0.955), the
+/// [`filmic`] curve per channel, sRGB encoding. Middle grey lands at sRGB 0.55 (Reinhard:
+/// 0.43), blacks stay black and highlights roll off without a hard clip.
+pub fn tonemap_camera(img: &Image) -> Image {
+    let ch = img.channels;
+    let mut lum: Vec<f32> = img
+        .data
+        .chunks_exact(ch.max(1))
+        .map(|px| {
+            if ch >= 3 {
+                0.2126 * px[0] + 0.7152 * px[1] + 0.0722 * px[2]
+            } else {
+                px[0]
+            }
+        })
+        .collect();
+    let k = (lum.len() * 99 / 100).min(lum.len().saturating_sub(1));
+    let p99 = if lum.is_empty() {
+        0.0
+    } else {
+        *lum.select_nth_unstable_by(k, f32::total_cmp).1
+    };
+    let mut scale = auto_exposure(img);
+    if p99 > 0.0 && p99 * scale > 3.0 {
+        scale = 3.0 / p99;
+    }
+    img.map(|v| linear_to_srgb(filmic(v * scale)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The camera tone curve against values worked out here in f64: the exposure puts the
+    /// log-average luminance at 0.18, the curve is the stated rational function, and the result
+    /// does not depend on the render's absolute scale.
+    #[test]
+    fn tonemap_camera_is_auto_exposed_filmic() {
+        let img = Image::from_fn(4, 3, 3, |x, y, c| {
+            // one bright highlight among mid-tones
+            if (x, y) == (3, 2) {
+                60.0
+            } else {
+                0.01 + (x * 3 + y) as f32 * 0.05 + c as f32 * 0.02
+            }
+        });
+        let lum: Vec<f64> = img
+            .data
+            .chunks_exact(3)
+            .map(|p| 0.2126 * p[0] as f64 + 0.7152 * p[1] as f64 + 0.0722 * p[2] as f64)
+            .collect();
+        let log_avg = (lum.iter().map(|l| (l + 1e-4).ln()).sum::<f64>() / lum.len() as f64).exp();
+        let mut sorted = lum.clone();
+        sorted.sort_by(f64::total_cmp);
+        let p99 = sorted[lum.len() * 99 / 100];
+        let k = (0.18 / log_avg).min(3.0 / p99);
+        assert!(
+            3.0 / p99 < 0.18 / log_avg,
+            "the test image must exercise the highlight cap"
+        );
+        let aces = |x: f64| (x * (2.51 * x + 0.03) / (x * (2.43 * x + 0.59) + 0.14)).clamp(0.0, 1.0);
+        let srgb = |v: f64| {
+            if v <= 0.0031308 {
+                12.92 * v
+            } else {
+                1.055 * v.powf(1.0 / 2.4) - 0.055
+            }
+        };
+        let out = tonemap_camera(&img);
+        let brighter = tonemap_camera(&img.map(|v| v * 37.0));
+        for (i, (&v, &o)) in img.data.iter().zip(&out.data).enumerate() {
+            let want = srgb(aces(v as f64 * k));
+            assert!((o as f64 - want).abs() < 2e-5, "{i}: {o} vs {want}");
+            assert!((brighter.data[i] - o).abs() < 2e-5, "exposure must cancel the scale");
+        }
+        assert!((filmic(0.18) - 0.2669).abs() < 1e-3 && (filmic(1.0) - 0.8038).abs() < 1e-3);
+        assert_eq!(filmic(1e9), 1.0);
+        assert_eq!(filmic(-1.0), 0.0);
+    }
 
     #[test]
     fn chw_roundtrip() {

@@ -66,6 +66,16 @@ pub struct SynthManifest {
     /// With `pixl synth --coarse`: where the coarse reconstruction's albedo came from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub coarse_albedo: Option<CoarseAlbedo>,
+    /// The scene generator (`photo` or `boxes`); absent in sets made before there were two
+    /// (those are `boxes`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub style: Option<String>,
+    /// How the images show the renders; absent: [`Tone::Reinhard`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tone: Option<Tone>,
+    /// Samples per pixel of the images when they differ from `spp` (that of the C_T passes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image_spp: Option<u32>,
     pub scenes: Vec<SynthSceneRecord>,
 }
 
@@ -95,6 +105,17 @@ pub enum CoarseAlbedo {
     /// The source image itself (`pixl reconstruct` without `--albedo`): no estimator, the source's
     /// shading and shadows stay in the texture.
     Photo,
+}
+
+/// How a synthetic set shows its linear renders as images.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Tone {
+    /// Reinhard with auto-exposure ([`pixl_core::image::tonemap_reinhard`]).
+    #[default]
+    Reinhard,
+    /// A camera's: auto-exposure, filmic curve ([`pixl_core::image::tonemap_camera`]).
+    Camera,
 }
 
 pub const MANIFEST: &str = "scenes.json";

@@ -46,7 +46,7 @@ mod vidit;
 
 pub use bigtime::BigTime;
 pub use error::{DataError, Result};
-pub use folder::{CoarseAlbedo, Folder, Synth};
+pub use folder::{CoarseAlbedo, Folder, Synth, Tone};
 pub use miiw::Miiw;
 pub use spec::{list_images, open, scenes_all};
 pub use vidit::Vidit;

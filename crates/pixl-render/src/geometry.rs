@@ -86,7 +86,52 @@ pub fn shape_mesh(scene: &Scene, shape: &Shape) -> Result<Mesh> {
         Shape::Sphere { radius } => uv_sphere(*radius, 96, 48),
         Shape::Cuboid { size } => cuboid(*size),
         Shape::Quad { size } => quad(*size),
+        Shape::Cylinder { radius, height } => cylinder(*radius, *height, 96),
     })
+}
+
+/// A closed cylinder along Y, centred on the origin: `segs` side quads with smooth normals
+/// (u around, v down the side), and two flat caps with their own vertices (planar UVs).
+fn cylinder(r: f32, h: f32, segs: usize) -> Mesh {
+    let mut m = Mesh::default();
+    let hy = 0.5 * h;
+    let ring = |i: usize| {
+        // The seam's last column repeats the first one's positions bit for bit (no crack).
+        let phi = 2.0 * PI * (i % segs) as f32 / segs as f32;
+        (phi.cos(), phi.sin())
+    };
+    for i in 0..=segs {
+        let (c, s) = ring(i);
+        let n = [c, 0.0, -s];
+        for (y, v) in [(hy, 0.0), (-hy, 1.0)] {
+            m.positions.push([r * n[0], y, r * n[2]]);
+            m.normals.push(n);
+            m.uvs.push([i as f32 / segs as f32, v]);
+        }
+    }
+    for i in 0..segs as u32 {
+        let (top, bot) = (2 * i, 2 * i + 1);
+        // Counter-clockwise seen from outside: φ grows counter-clockwise seen from +Y.
+        m.indices.push([top, bot, bot + 2]);
+        m.indices.push([top, bot + 2, top + 2]);
+    }
+    for (y, ny) in [(hy, 1.0f32), (-hy, -1.0)] {
+        let centre = m.positions.len() as u32;
+        m.positions.push([0.0, y, 0.0]);
+        m.normals.push([0.0, ny, 0.0]);
+        m.uvs.push([0.5, 0.5]);
+        for i in 0..segs {
+            let (c, s) = ring(i);
+            m.positions.push([r * c, y, -r * s]);
+            m.normals.push([0.0, ny, 0.0]);
+            m.uvs.push([0.5 + 0.5 * c, 0.5 - 0.5 * ny * s]);
+        }
+        for i in 0..segs as u32 {
+            let (a, b) = (centre + 1 + i, centre + 1 + (i + 1) % segs as u32);
+            m.indices.push(if ny > 0.0 { [centre, a, b] } else { [centre, b, a] });
+        }
+    }
+    m
 }
 
 fn uv_sphere(r: f32, segs: usize, rings: usize) -> Mesh {
@@ -434,6 +479,54 @@ impl Geometry {
 mod tests {
     use super::*;
     use pixl_core::Rng;
+
+    /// The cylinder is closed and outward-facing: every directed edge (by position) is met by
+    /// its reverse exactly once, and the divergence-theorem volume equals the prism's
+    /// `h · (n/2) r² sin(2π/n)` computed here in f64; the side normals are radial, caps ±Y.
+    #[test]
+    fn cylinder_is_closed_and_has_the_prism_volume() {
+        let (r, h, n) = (0.7f32, 1.3f32, 24usize);
+        let m = cylinder(r, h, n);
+        let key = |i: u32| m.positions[i as usize].map(f32::to_bits);
+        let mut edges = std::collections::HashMap::new();
+        for t in &m.indices {
+            for k in 0..3 {
+                *edges.entry((key(t[k]), key(t[(k + 1) % 3]))).or_insert(0) += 1;
+            }
+        }
+        for (&(a, b), &count) in &edges {
+            assert_eq!(count, 1, "edge used twice in one direction");
+            assert_eq!(
+                edges.get(&(b, a)),
+                Some(&1),
+                "edge without its reverse: the mesh has a crack"
+            );
+        }
+        let p = |i: u32| m.positions[i as usize].map(f64::from);
+        let volume: f64 = m
+            .indices
+            .iter()
+            .map(|t| {
+                let (a, b, c) = (p(t[0]), p(t[1]), p(t[2]));
+                let cross = [
+                    b[1] * c[2] - b[2] * c[1],
+                    b[2] * c[0] - b[0] * c[2],
+                    b[0] * c[1] - b[1] * c[0],
+                ];
+                (a[0] * cross[0] + a[1] * cross[1] + a[2] * cross[2]) / 6.0
+            })
+            .sum();
+        let (rf, hf, nf) = (r as f64, h as f64, n as f64);
+        let want = hf * nf / 2.0 * rf * rf * (2.0 * std::f64::consts::PI / nf).sin();
+        assert!((volume - want).abs() < 1e-5 * want, "volume {volume} vs {want}");
+        for (q, nrm) in m.positions.iter().zip(&m.normals) {
+            if nrm[1] == 0.0 {
+                assert!((q[0] / r - nrm[0]).abs() < 1e-6 && (q[2] / r - nrm[2]).abs() < 1e-6);
+            } else {
+                assert_eq!(q[1], 0.5 * h * nrm[1], "cap normal ±Y on its own cap");
+            }
+        }
+    }
 
     /// Packet queries (`intersect_packet`, through a `RayPack`) give each ray exactly the
     /// single-ray query's surface, for full and partial packets of coherent and random rays,

@@ -17,6 +17,7 @@ pub mod blender;
 pub mod bvh;
 pub mod camera;
 pub mod color;
+pub mod denoise;
 pub mod depth;
 pub mod error;
 pub mod export;

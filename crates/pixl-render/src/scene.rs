@@ -321,6 +321,9 @@ pub enum Shape {
     Cuboid { size: [f32; 3] },
     /// A rectangle in the local XY plane, facing +Z (Blender's plane primitive), `size = [sx, sy]`.
     Quad { size: [f32; 2] },
+    /// A closed cylinder along the local Y axis (up), from `−height/2` to `+height/2`: smooth
+    /// side, flat caps (Blender's cylinder primitive turned Y-up).
+    Cylinder { radius: f32, height: f32 },
 }
 
 /// Principled-BSDF-like material (maps 1:1 to Blender's Principled BSDF inputs of the same
@@ -977,6 +980,13 @@ impl Scene {
                 }
                 Shape::Quad { size } if size.iter().any(|v| !(v.is_finite() && *v > 0.0)) => {
                     return Err(err(format!("quad size {size:?} must be positive")))
+                }
+                Shape::Cylinder { radius, height }
+                    if !(radius.is_finite() && *radius > 0.0 && height.is_finite() && *height > 0.0) =>
+                {
+                    return Err(err(format!(
+                        "cylinder radius {radius} and height {height} must be positive"
+                    )))
                 }
                 _ => {}
             }

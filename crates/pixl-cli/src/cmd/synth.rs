@@ -4,17 +4,25 @@
 //! The output folder is checked first: a non-empty one is refused without `--force`. A run that
 //! fails or is interrupted removes the folders and files it created (`pixl_core::output::Provisional`).
 //! `--json` prints one document on stdout: `{output, scenes, test_scenes, lights, size, spp,
-//! seed, coarse, manifest, seconds}`; see `crates/pixl-cli/README.md`.
+//! image_spp, style, seed, coarse, manifest, seconds}`; see `crates/pixl-cli/README.md`.
 use crate::Ctx;
 use std::path::PathBuf;
 
 #[derive(clap::Args, Debug)]
 #[command(
     after_help = "Example:\n  pixl synth --scenes 48 --lights 4 --size 128 --spp 16 --seed 1 -o synth/\n\n\
+Styles: photo (default) — furnished rooms and table-tops, textured wood/stone/fabric/paint/prints/\n\
+tiles/metal, glossy, dark and glass objects, 1-3 lights of every kind, images shown with a camera's\n\
+tone curve; boxes — the first generator (random boxes and spheres, Reinhard), for making older\n\
+sets again.\n\n\
 Layout: OUT/scenes.json, OUT/scene<NNNN>/light_<k>.png (+ light_<k>.intrinsics.exr), OUT/textures/.\n\
 Read it back with --dataset synth:OUT (pixl train, pixl eval)."
 )]
 pub struct Args {
+    /// Scene generator: `photo` (rooms and table-tops that look like photographs) or `boxes`
+    /// (the first generator; its sets and the bundled demo weights' runs are made with it).
+    #[arg(long, value_enum, default_value_t = StyleArg::Photo)]
+    pub style: StyleArg,
     /// Number of procedural scenes (at least 1).
     #[arg(long, default_value_t = 100, value_parser = crate::ctx::at_least_one_usize)]
     pub scenes: usize,
@@ -24,9 +32,14 @@ pub struct Args {
     /// Image side in pixels (square images, at least 8).
     #[arg(long, default_value_t = 256, value_parser = at_least_eight)]
     pub size: u32,
-    /// Path-tracing samples per pixel (at least 1).
+    /// Path-tracing samples per pixel of the passes C_T is composed from (at least 1): C_T keeps
+    /// the noise of a quick render, as at run time.
     #[arg(long, default_value_t = 16, value_parser = crate::ctx::at_least_one)]
     pub spp: u32,
+    /// Samples per pixel of the images (the training targets), from a separate render
+    /// [default: 4 × --spp for photo; --spp for boxes, one render for both].
+    #[arg(long, value_parser = crate::ctx::at_least_one)]
+    pub image_spp: Option<u32>,
     /// Maximum bounces of the path tracer.
     #[arg(long, default_value_t = 2)]
     pub max_bounces: u32,
@@ -77,6 +90,11 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let ctx = &ctx.for_json(args.json);
     pixl_core::output::check_output_dir(&args.out, args.force, &[], &[])?;
     let opts = pixl_train::synth::SynthOptions {
+        style: match args.style {
+            StyleArg::Photo => pixl_train::synth::SynthStyle::Photo,
+            StyleArg::Boxes => pixl_train::synth::SynthStyle::Boxes,
+        },
+        image_spp: args.image_spp,
         scenes: args.scenes,
         lights: args.lights,
         size: args.size,
@@ -111,6 +129,8 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "lights": args.lights,
             "size": args.size,
             "spp": args.spp,
+            "image_spp": opts.image_spp(),
+            "style": opts.style.name(),
             "seed": args.seed,
             "coarse": args.coarse,
             "manifest": args.out.join(pixl_data::folder::MANIFEST).display().to_string(),
@@ -125,6 +145,13 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         args.out.display(),
     ));
     Ok(())
+}
+
+/// `--style` values (see [`pixl_train::synth::SynthStyle`]).
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StyleArg {
+    Photo,
+    Boxes,
 }
 
 /// `--coarse-albedo` values (see [`pixl_data::CoarseAlbedo`]).
