@@ -143,17 +143,23 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
     };
     let out = run(args(true, &synth));
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    // Pairs 0 → 1 and 1 → 0 of both scenes (scene0001 is the test scene), nothing else.
+    // Pairs 0 → 1 and 1 → 0 of both scenes (scene0001 is the test scene) and each source under
+    // its own lighting (for the light-response score), nothing else.
     for scene in ["scene0000", "scene0001"] {
-        for f in ["light_1.from_light_0", "light_0.from_light_1"] {
+        for f in [
+            "light_1.from_light_0",
+            "light_0.from_light_1",
+            "light_0.from_light_0",
+            "light_1.from_light_1",
+        ] {
             assert!(synth.join(format!("{scene}/{f}.intrinsics.exr")).is_file(), "{f}");
             assert!(synth.join(format!("{scene}/{f}.path_traced.png")).is_file(), "{f}");
         }
         let n = std::fs::read_dir(synth.join(scene)).unwrap().count();
         assert_eq!(
             n,
-            4 + 4 + 2,
-            "{scene}: 2 images + 2 C_T, 2 coarse C_T + 2 renders, 2 reconstructions"
+            4 + 8 + 2,
+            "{scene}: 2 images + 2 C_T, 4 coarse C_T + 4 renders, 2 reconstructions"
         );
     }
     let exact = pixl_intrinsics::ct::read_ct(&synth.join("scene0001/light_1.intrinsics.exr")).unwrap();
@@ -172,7 +178,7 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
             "--dataset",
             &format!("synth:{}", root.display()),
             "--baselines",
-            "compose",
+            "compose,identity",
             "--runs",
             "0",
             "--json",
@@ -187,11 +193,22 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
         let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         v["methods"][0]["psnr"].as_f64().unwrap()
     };
-    let (p_exact, p_coarse) = (psnr(&eval("exact", &synth)), psnr(&eval("coarse", &synth)));
+    let (e_exact, e_coarse) = (eval("exact", &synth), eval("coarse", &synth));
+    let (p_exact, p_coarse) = (psnr(&e_exact), psnr(&e_coarse));
     assert!(
         p_exact.is_finite() && p_coarse.is_finite() && p_exact != p_coarse,
         "{p_exact} {p_coarse}"
     );
+    // The light-response score comes with both: the identity never responds.
+    for o in [&e_exact, &e_coarse] {
+        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let rows = v["response"].as_array().expect("response rows");
+        assert_eq!(rows.len(), 2, "{v}");
+        assert_eq!(rows[1]["method"], "Identity (source)");
+        assert_eq!(rows[1]["gain"].as_f64(), Some(0.0));
+        assert!(rows[0]["gain"].as_f64().is_some_and(f64::is_finite));
+        assert_eq!(rows[0]["pairs"].as_u64(), Some(2), "one test scene, two pairs");
+    }
     // A set made without --coarse: a clear error naming the missing file and the fix.
     let plain = dir.path().join("plain");
     assert!(run(args(false, &plain)).status.success());
@@ -202,6 +219,67 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
         err.contains("from_light_") && err.contains("pixl synth --coarse"),
         "{err}"
     );
+}
+
+/// On a boxes-style set (images shown with Reinhard) the coarse scene's path-traced renders are
+/// what compose-reinhard makes of their own C_T, so its light response over the coarse renders
+/// is close to 1 — an independent check of the score's plumbing; `--no-response` turns it off.
+#[test]
+fn eval_light_response_of_compose_reinhard_follows_the_renders() {
+    let dir = tempfile::tempdir().unwrap();
+    let synth = dir.path().join("synth");
+    let o = pixl(&[
+        "-q",
+        "synth",
+        "--style",
+        "boxes",
+        "--scenes",
+        "1",
+        "--lights",
+        "3",
+        "--size",
+        "32",
+        "--spp",
+        "16",
+        "--test-every",
+        "1",
+        "--coarse",
+        "-o",
+        synth.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let eval = |extra: &[&str]| {
+        let (data, out) = (format!("synth:{}", synth.display()), dir.path().join("eval"));
+        let mut a = vec![
+            "-q",
+            "eval",
+            "--dataset",
+            &data,
+            "--baselines",
+            "compose-reinhard",
+            "--runs",
+            "0",
+            "--json",
+            "--ct",
+            "coarse",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        a.extend(extra);
+        let o = pixl(&a);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
+    };
+    let v = eval(&[]);
+    let gain = v["response"][0]["gain"].as_f64().unwrap();
+    let corr = v["response"][0]["correlation"].as_f64().unwrap();
+    assert!(
+        gain > 0.85 && gain < 1.15 && corr > 0.9,
+        "gain {gain}, correlation {corr}"
+    );
+    assert_eq!(v["response"][0]["pairs"].as_u64(), Some(3));
+    let off = eval(&["--no-response"]);
+    assert!(off["response"].as_array().is_none_or(|r| r.is_empty()), "{off}");
 }
 
 /// `--coarse-albedo photo` textures each reconstruction with its source image itself (as `pixl

@@ -122,6 +122,17 @@ pub fn coarse_ct_path(source: &Path, target: &Path) -> PathBuf {
     target.with_file_name(format!("{}.from_{}.intrinsics.exr", stem(target), stem(source)))
 }
 
+/// Where `pixl synth --coarse` writes the path-traced render of that coarse scene under the
+/// target's lights, shown as the set's images are: `<target stem>.from_<source stem>.path_traced.png`.
+pub fn coarse_render_path(source: &Path, target: &Path) -> PathBuf {
+    let ct = coarse_ct_path(source, target);
+    let name = ct
+        .file_name()
+        .map(|n| n.to_string_lossy().replace(".intrinsics.exr", ".path_traced.png"))
+        .unwrap_or_default();
+    ct.with_file_name(name)
+}
+
 /// Whether a file name is a cached C_T (`*.intrinsics.exr`), never a photograph.
 pub fn is_intrinsics_file(path: &Path) -> bool {
     path.file_name()

@@ -24,6 +24,9 @@ pub use error::{EvalError, Result};
 pub use lpips::{Lpips, LpipsError, LpipsNet};
 pub use metrics::{psnr, scale_correct, ssim, MetricError};
 pub use report::write_reports;
-pub use response::{light_response, LightResponse};
-pub use run::{default_pairs, read_pairs, run_eval, EvalOptions, EvalReport, MethodSummary, Pair, PairScore};
+pub use response::{light_response, LightResponse, ResponseSums};
+pub use run::{
+    default_pairs, read_pairs, run_eval, run_response, EvalOptions, EvalReport, MethodSummary, Pair, PairScore,
+    ResponseCase, ResponseSummary,
+};
 pub use timing::{time_runs, Timing, DEFAULT_RUNS, DEFAULT_WARMUPS};

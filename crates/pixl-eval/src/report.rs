@@ -120,6 +120,25 @@ pub fn markdown(report: &EvalReport) -> String {
             time
         );
     }
+    if !report.response.is_empty() {
+        let _ = writeln!(
+            s,
+            "\n## Light response\n\nOver {} lighting pairs (a source relit to its own and to another lighting; renders: {}), per pixel a = the change of log-luminance between the two outputs, b = that between the two renders. Gain = Σab / Σb² (1: all of the light's change shows, 0: none), correlation = Pearson's r (pixl-eval's README).\n",
+            report.response[0].pairs,
+            report.response_renders.as_deref().unwrap_or("path-traced")
+        );
+        let _ = writeln!(s, "| Method | Gain ↑ | Correlation ↑ |");
+        let _ = writeln!(s, "|---|---:|---:|");
+        for r in &report.response {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} |",
+                r.method,
+                fmt_score(r.gain, 3),
+                fmt_score(r.correlation, 3)
+            );
+        }
+    }
     s
 }
 
@@ -210,6 +229,8 @@ mod tests {
                 ssim: 1.0,
                 lpips: None,
             }],
+            response: Vec::new(),
+            response_renders: None,
         }
     }
 

@@ -56,56 +56,88 @@ fn log_luminance(img: &Image) -> Vec<f64> {
 /// Errors: fewer than two lightings, counts or sizes that differ, empty or non-finite images, or
 /// renders that are the same under every lighting (no change to respond to).
 pub fn light_response(relit: &[&Image], renders: &[&Image]) -> Result<LightResponse, MetricError> {
-    if relit.len() != renders.len() || relit.len() < 2 {
-        return Err(MetricError::Lightings {
-            relit: relit.len(),
-            renders: renders.len(),
-        });
-    }
-    let first = renders[0];
-    for (which, img) in relit
-        .iter()
-        .map(|i| ("relit image", *i))
-        .chain(renders.iter().map(|i| ("render", *i)))
-    {
-        check_image(img, which, first)?;
-    }
-    let lo: Vec<Vec<f64>> = relit.iter().map(|i| log_luminance(i)).collect();
-    let lr: Vec<Vec<f64>> = renders.iter().map(|i| log_luminance(i)).collect();
-    let k = relit.len();
-    let (mut n, mut sa, mut sb, mut sab, mut saa, mut sbb) = (0f64, 0f64, 0f64, 0f64, 0f64, 0f64);
-    for i in 0..k {
-        for j in i + 1..k {
-            for p in 0..lo[i].len() {
-                let a = lo[j][p] - lo[i][p];
-                let b = lr[j][p] - lr[i][p];
-                n += 1.0;
-                sa += a;
-                sb += b;
-                sab += a * b;
-                saa += a * a;
-                sbb += b * b;
+    let mut sums = ResponseSums::default();
+    sums.add(relit, renders)?;
+    sums.finish()
+}
+
+/// The sums behind [`light_response`], pooled over several sets of lightings (e.g. every
+/// evaluation pair of a data set, each a source relit to its own and to another lighting): the
+/// pooled score weighs every pixel of every pair alike.
+#[derive(Clone, Debug, Default)]
+pub struct ResponseSums {
+    n: f64,
+    sa: f64,
+    sb: f64,
+    sab: f64,
+    saa: f64,
+    sbb: f64,
+    pairs: usize,
+    pixels: usize,
+}
+
+impl ResponseSums {
+    /// Adds the lighting pairs of one scene's `relit[k]` / `renders[k]` (same checks as
+    /// [`light_response`], except that an unchanging set is only an error at [`finish`](Self::finish)).
+    pub fn add(&mut self, relit: &[&Image], renders: &[&Image]) -> Result<(), MetricError> {
+        if relit.len() != renders.len() || relit.len() < 2 {
+            return Err(MetricError::Lightings {
+                relit: relit.len(),
+                renders: renders.len(),
+            });
+        }
+        let first = renders[0];
+        for (which, img) in relit
+            .iter()
+            .map(|i| ("relit image", *i))
+            .chain(renders.iter().map(|i| ("render", *i)))
+        {
+            check_image(img, which, first)?;
+        }
+        let lo: Vec<Vec<f64>> = relit.iter().map(|i| log_luminance(i)).collect();
+        let lr: Vec<Vec<f64>> = renders.iter().map(|i| log_luminance(i)).collect();
+        let k = relit.len();
+        for i in 0..k {
+            for j in i + 1..k {
+                for p in 0..lo[i].len() {
+                    let a = lo[j][p] - lo[i][p];
+                    let b = lr[j][p] - lr[i][p];
+                    self.n += 1.0;
+                    self.sa += a;
+                    self.sb += b;
+                    self.sab += a * b;
+                    self.saa += a * a;
+                    self.sbb += b * b;
+                }
             }
         }
+        self.pairs += k * (k - 1) / 2;
+        self.pixels = first.num_pixels();
+        Ok(())
     }
-    if sbb == 0.0 {
-        return Err(MetricError::NoLightChange);
+
+    /// The score of everything added. `pixels` is that of the last set added.
+    pub fn finish(&self) -> Result<LightResponse, MetricError> {
+        if self.sbb == 0.0 {
+            return Err(MetricError::NoLightChange);
+        }
+        let (n, sa, sb) = (self.n, self.sa, self.sb);
+        let gain = self.sab / self.sbb;
+        let cov = self.sab - sa * sb / n;
+        let var_a = (self.saa - sa * sa / n).max(0.0);
+        let var_b = (self.sbb - sb * sb / n).max(0.0);
+        let correlation = if var_a > 0.0 && var_b > 0.0 {
+            (cov / (var_a * var_b).sqrt()).clamp(-1.0, 1.0)
+        } else {
+            0.0
+        };
+        Ok(LightResponse {
+            gain,
+            correlation,
+            pairs: self.pairs,
+            pixels: self.pixels,
+        })
     }
-    let gain = sab / sbb;
-    let cov = sab - sa * sb / n;
-    let var_a = (saa - sa * sa / n).max(0.0);
-    let var_b = (sbb - sb * sb / n).max(0.0);
-    let correlation = if var_a > 0.0 && var_b > 0.0 {
-        (cov / (var_a * var_b).sqrt()).clamp(-1.0, 1.0)
-    } else {
-        0.0
-    };
-    Ok(LightResponse {
-        gain,
-        correlation,
-        pairs: k * (k - 1) / 2,
-        pixels: first.num_pixels(),
-    })
 }
 
 #[cfg(test)]
@@ -160,6 +192,38 @@ mod tests {
         let va: f64 = pts.iter().map(|(a, _)| (a - ma).powi(2)).sum();
         let vb: f64 = pts.iter().map(|(_, b)| (b - mb).powi(2)).sum();
         (gain, cov / (va * vb).sqrt())
+    }
+
+    /// Pooling two sets of two lightings equals the score of the side-by-side images (the
+    /// same pixel pairs), computed naively.
+    #[test]
+    fn pooled_sets_equal_the_stitched_images() {
+        let r = renders();
+        let o: Vec<Image> = r
+            .iter()
+            .enumerate()
+            .map(|(k, i)| i.map(|v| (v * (0.6 + 0.1 * k as f32)).min(1.0)))
+            .collect();
+        let stitch = |a: &Image, b: &Image| {
+            Image::from_fn(a.width + b.width, a.height, 3, |x, y, c| {
+                if x < a.width {
+                    a.get(x, y, c)
+                } else {
+                    b.get(x - a.width, y, c)
+                }
+            })
+        };
+        let mut sums = ResponseSums::default();
+        sums.add(&[&o[0], &o[1]], &[&r[0], &r[1]]).unwrap();
+        sums.add(&[&o[2], &o[3]], &[&r[2], &r[3]]).unwrap();
+        let pooled = sums.finish().unwrap();
+        let (so, sr) = (
+            [stitch(&o[0], &o[2]), stitch(&o[1], &o[3])],
+            [stitch(&r[0], &r[2]), stitch(&r[1], &r[3])],
+        );
+        let (gain, corr) = naive(&so, &sr);
+        assert!((pooled.gain - gain).abs() < 1e-9 && (pooled.correlation - corr).abs() < 1e-9);
+        assert_eq!(pooled.pairs, 2);
     }
 
     #[test]

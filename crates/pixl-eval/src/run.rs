@@ -177,6 +177,86 @@ pub struct EvalReport {
     pub lpips_net: Option<String>,
     pub methods: Vec<MethodSummary>,
     pub per_pair: Vec<PairScore>,
+    /// The light-response score per method ([`run_response`]), when the data set has what it
+    /// needs; what the renders were.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub response: Vec<ResponseSummary>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub response_renders: Option<String>,
+}
+
+/// One case of the light-response score ([`crate::response`]): a source relit to two lightings
+/// (C_T files `cts`), against the renders of its scene under those two lightings.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ResponseCase {
+    pub scene: String,
+    pub source: std::path::PathBuf,
+    pub cts: [std::path::PathBuf; 2],
+    pub renders: [std::path::PathBuf; 2],
+}
+
+/// A method's light-response score, pooled over every case.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ResponseSummary {
+    pub method: String,
+    pub gain: f64,
+    pub correlation: f64,
+    /// Cases (lighting pairs) pooled.
+    pub pairs: usize,
+}
+
+/// Scores every method's light response over `cases`: each relights the case's source with
+/// both C_T and the pair of outputs is compared with the pair of renders, pooled over all cases
+/// ([`crate::ResponseSums`]). No scale correction (a scale common to both outputs cancels in
+/// the log-luminance change). `on_case` is called after each case.
+pub fn run_response(
+    cases: &[ResponseCase],
+    methods: &[Box<dyn Method>],
+    mut on_case: impl FnMut(usize),
+) -> Result<Vec<ResponseSummary>> {
+    if cases.is_empty() {
+        return Err(EvalError::Empty("no light-response case".into()));
+    }
+    let mut sums = vec![crate::ResponseSums::default(); methods.len()];
+    for (i, case) in cases.iter().enumerate() {
+        let err = |reason: String| EvalError::Pair {
+            scene: case.scene.clone(),
+            source_name: case.source.display().to_string(),
+            target: case.cts[1].display().to_string(),
+            reason,
+        };
+        let source = load_image(&case.source)?;
+        let mut cts = Vec::with_capacity(2);
+        for path in &case.cts {
+            cts.push(load_intrinsics(&ImageEntry {
+                image: case.source.clone(),
+                intrinsics: Some(path.clone()),
+            })?);
+        }
+        let renders = [load_image(&case.renders[0])?, load_image(&case.renders[1])?];
+        for (method, sum) in methods.iter().zip(&mut sums) {
+            let outs = [
+                method.predict(&source, Some(&cts[0]))?,
+                method.predict(&source, Some(&cts[1]))?,
+            ];
+            sum.add(&[&outs[0], &outs[1]], &[&renders[0], &renders[1]])
+                .map_err(|e| err(format!("{}: light response: {e}", method.name())))?;
+        }
+        on_case(i + 1);
+    }
+    methods
+        .iter()
+        .zip(&sums)
+        .map(|(m, s)| {
+            let r = s.finish()?;
+            Ok(ResponseSummary {
+                method: m.name().to_string(),
+                gain: r.gain,
+                correlation: r.correlation,
+                pairs: r.pairs,
+            })
+        })
+        .collect()
 }
 
 struct Loaded {
@@ -303,5 +383,7 @@ pub fn run_eval(
         lpips_net: lpips.map(|l| l.net().name().to_string()),
         methods: summaries,
         per_pair,
+        response: Vec::new(),
+        response_renders: None,
     })
 }

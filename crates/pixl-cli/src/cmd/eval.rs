@@ -37,6 +37,12 @@ pub struct Args {
     /// inference setting; `<target>.from_<source>.intrinsics.exr`).
     #[arg(long, default_value = "exact", value_parser = ["exact", "coarse"])]
     pub ct: String,
+    /// Skip the light-response score. By default it is computed whenever every pair has what it
+    /// needs: with `--ct coarse`, the coarse C_T and path-traced render of the source's own
+    /// lighting and of the target's (`pixl synth --coarse` writes both); with `--ct exact`, the
+    /// source's and the target's own C_T (the images themselves are the renders).
+    #[arg(long)]
+    pub no_response: bool,
     /// Evaluate only the first N pairs of the list.
     #[arg(long)]
     pub limit: Option<usize>,
@@ -97,6 +103,11 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     if let Some(n) = args.limit {
         pairs.truncate(n);
     }
+    let cases = if args.no_response {
+        None
+    } else {
+        response_cases(&pairs, args.ct == "coarse")
+    };
     if args.ct == "coarse" {
         for p in &mut pairs {
             let path = pixl_data::coarse_ct_path(&p.source.image, &p.target.image);
@@ -151,10 +162,28 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     } else {
         args.dataset.clone()
     };
-    let report = pixl_eval::run_eval(&label, &pairs, &methods, lpips.as_ref(), &opts, |i| {
+    let mut report = pixl_eval::run_eval(&label, &pairs, &methods, lpips.as_ref(), &opts, |i| {
         pb.set_position(i as u64)
     })?;
     pb.finish_and_clear();
+    match &cases {
+        Some(cases) => {
+            let pb = ctx.progress(cases.len() as u64, "light response");
+            report.response = pixl_eval::run_response(cases, &methods, |i| pb.set_position(i as u64))?;
+            pb.finish_and_clear();
+            report.response_renders = Some(if args.ct == "coarse" {
+                "the coarse scene path-traced under each lighting".into()
+            } else {
+                "the data set's own images".into()
+            });
+        }
+        _ if !args.no_response => {
+            tracing::info!(
+                "light response not computed: some pair lacks the C_T or render it needs (see --no-response)"
+            )
+        }
+        _ => {}
+    }
     pixl_eval::write_reports(&report, &args.out)?;
 
     if args.json {
@@ -165,6 +194,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "scale_correction": report.scale_correction,
             "lpips_net": report.lpips_net,
             "methods": report.methods,
+            "response": report.response,
         });
         ctx.print_json(&summary)?;
     } else {
@@ -180,4 +210,40 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         ));
     }
     Ok(())
+}
+
+/// The light-response cases of `pairs` (see `--no-response`), or `None` when a file is missing.
+fn response_cases(pairs: &[pixl_eval::Pair], coarse: bool) -> Option<Vec<pixl_eval::ResponseCase>> {
+    let own_ct = |e: &pixl_data::ImageEntry| {
+        e.intrinsics
+            .clone()
+            .unwrap_or_else(|| pixl_data::ct_cache_path(&e.image))
+    };
+    let cases: Vec<pixl_eval::ResponseCase> = pairs
+        .iter()
+        .map(|p| {
+            let (src, tgt) = (&p.source.image, &p.target.image);
+            let (cts, renders) = if coarse {
+                (
+                    [pixl_data::coarse_ct_path(src, src), pixl_data::coarse_ct_path(src, tgt)],
+                    [
+                        pixl_data::coarse_render_path(src, src),
+                        pixl_data::coarse_render_path(src, tgt),
+                    ],
+                )
+            } else {
+                ([own_ct(&p.source), own_ct(&p.target)], [src.clone(), tgt.clone()])
+            };
+            pixl_eval::ResponseCase {
+                scene: p.scene.clone(),
+                source: src.clone(),
+                cts,
+                renders,
+            }
+        })
+        .collect();
+    let complete = cases
+        .iter()
+        .all(|c| c.cts.iter().chain(&c.renders).all(|f| f.is_file()));
+    (complete && !cases.is_empty()).then_some(cases)
 }

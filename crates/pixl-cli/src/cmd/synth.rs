@@ -50,8 +50,10 @@ pub struct Args {
     pub test_every: usize,
     /// Also write, for every pair i → i+1 of every scene, the C_T of the paper's inference
     /// setting: the coarse reconstruction of image i (depth → mesh, diffuse colour → albedo)
-    /// rendered under lighting i+1 (`light_<j>.from_light_<i>.intrinsics.exr`; read by
-    /// `pixl eval --ct coarse` and by training with `[data.sampler] coarse_ct`). Doubles the time.
+    /// rendered under lighting i+1 (`light_<j>.from_light_<i>.intrinsics.exr`, with its
+    /// path-traced picture; read by `pixl eval --ct coarse` and by training with
+    /// `[data.sampler] coarse_ct`), and the same under lighting i itself (for `pixl eval`'s
+    /// light-response score). Two more renders per image, at --spp.
     #[arg(long)]
     pub coarse: bool,
     /// With --coarse: the reconstruction's albedo texture — `diffcol` (the source render's

@@ -18,11 +18,12 @@
 //! records the style and the tone).
 //!
 //! With `coarse` (`pixl synth --coarse`), every scene also gets the C_T of the paper's inference
-//! setting for each pair `i → j = i + 1 (mod lightings)` (the evaluation pairs): the coarse
+//! setting for each pair `i → j = i + 1 (mod lightings)` (the evaluation pairs) and `i → i`
+//! (the source's own lighting, for the light-response score of `pixl eval`): the coarse
 //! reconstruction of image `i` alone (its Depth pass → mesh, DiffCol → albedo texture, one
 //! estimated material; [`pixl_render::reconstruct::coarse_scene`]) rendered under lighting `j`
-//! and composed — `light_<j>.from_light_<i>.intrinsics.exr` ([`pixl_data::coarse_ct_path`]), beside that
-//! render shown like the images (`….path_traced.png`). `pixl eval --ct coarse` reads those of
+//! and composed — `light_<j>.from_light_<i>.intrinsics.exr` ([`pixl_data::coarse_ct_path`]),
+//! beside that render shown like the images (`….path_traced.png`, [`pixl_data::coarse_render_path`]). `pixl eval --ct coarse` reads those of
 //! the test scenes; training can condition on those of the train scenes
 //! (`[data.sampler] coarse_ct`, `coarse_pair_share`). With `coarse_albedo = photo` the
 //! reconstruction is textured with image `i` itself instead of its DiffCol pass (what `pixl
@@ -190,7 +191,7 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
     }
     let mut made = Provisional::new();
     made.create_dir_all(out)?;
-    let n_coarse = if opts.coarse { opts.scenes * opts.lights } else { 0 };
+    let n_coarse = if opts.coarse { 2 * opts.scenes * opts.lights } else { 0 };
     let total = opts.scenes * opts.lights + n_coarse;
     let mut done = 0;
     let mut records = Vec::new();
@@ -242,7 +243,6 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
             progress(done, total);
         }
         for (k, (source_scene, source_film, source_image)) in lit.iter().enumerate() {
-            let j = (k + 1) % opts.lights;
             let recon_dir = dir.join(format!("coarse_from_light_{k}"));
             made.create_dir_all(&recon_dir)?;
             let photo = match opts.coarse_albedo {
@@ -257,23 +257,22 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
                 &recon_dir,
             )
             .map_err(|e| TrainError::Other(format!("coarse reconstruction of {name}/light_{k}: {e}")))?;
-            relit.lights = lit[j].0.lights.clone();
-            relit.world = lit[j].0.world.clone();
-            let (src_img, tgt_img) = (out.join(&images[k].image), out.join(&images[j].image));
-            let ct_path = coarse_ct_path(&src_img, &tgt_img);
-            let traced = ct_path.with_file_name(
-                ct_path
-                    .file_name()
-                    .map(|n| n.to_string_lossy().replace(".intrinsics.exr", ".path_traced.png"))
-                    .unwrap_or_default(),
-            );
-            made.add_new_file(&traced);
-            made.add_new_file(&ct_path);
-            // Its own sample streams: the coarse render must not share the target's noise. Its
-            // picture is for looking at: one render at `spp` serves both.
-            render_one(opts, opts.spp, opts.seed ^ 0xC0A4_5E00, &relit, &traced, &ct_path)?;
-            done += 1;
-            progress(done, total);
+            // The evaluation pair's target i+1, then the source's own lighting (for the
+            // light-response score: the change between the two renders is what the lights do).
+            for j in [(k + 1) % opts.lights, k] {
+                relit.lights = lit[j].0.lights.clone();
+                relit.world = lit[j].0.world.clone();
+                let (src_img, tgt_img) = (out.join(&images[k].image), out.join(&images[j].image));
+                let ct_path = coarse_ct_path(&src_img, &tgt_img);
+                let traced = pixl_data::coarse_render_path(&src_img, &tgt_img);
+                made.add_new_file(&traced);
+                made.add_new_file(&ct_path);
+                // Its own sample streams: the coarse render must not share the target's noise.
+                // One render at `spp` serves C_T and the picture.
+                render_one(opts, opts.spp, opts.seed ^ 0xC0A4_5E00, &relit, &traced, &ct_path)?;
+                done += 1;
+                progress(done, total);
+            }
         }
         let is_test = opts.test_every > 0 && i % opts.test_every == opts.test_every - 1;
         records.push(SynthSceneRecord {
