@@ -1,6 +1,16 @@
 //! Lights for the tracer, in Cycles' units (see [`crate::scene`]): point, spot, area
 //! (rectangle / disk), sun, the world, and emissive triangles. One light is picked per shading
-//! point in proportion to an estimate of its power; the sample returns the incident radiance
+//! point ([`LightPick`]) in proportion to an estimate of what it brings *there* — its
+//! unoccluded irradiance bounded over the light's extent: intensity or radiance × a bound of the
+//! emitter's and the receiver's cosines (and a spot's cone mask) / distance², capped at `π L`
+//! for area lights; a sun's irradiance × the receiver's cosine bound; the world's irradiance on
+//! the normal from its first spherical harmonics; the emissive triangles as one group (by power,
+//! over the distance to their bounds), inside which a triangle is picked by power. A share
+//! [`PICK_FLOOR`] of the probability follows the lights' scene-wide power among the lights that
+//! can reach the point at all (not behind a one-sided area light, not outside a spot's cone),
+//! so no light that can contribute has probability 0 (the estimator stays unbiased whatever the
+//! estimate). BSDF-sampled hits of a light are MIS-weighted with the pick probability of the
+//! vertex the ray left ([`Lights::pick_pmf_at`]). The sample returns the incident radiance
 //! (or, for delta lights, the radiance-equivalent `I/d²` or irradiance) and the pdf including
 //! the pick probability.
 //!
@@ -18,7 +28,11 @@
 //!   least ~0.16° (Blender's default is 0.526°) a cone of uniform radiance `E / Ω` (`Ω = 2π(1 −
 //!   cos(angle/2))`, directions sampled uniformly in it), below that a delta light of
 //!   irradiance `E` (directions still spread over the cone).
-//! - World: radiance `strength·color` (× texel), sampled uniformly over the sphere.
+//! - World: radiance `strength·color` (× texel). An image world is sampled in proportion to
+//!   the mean luminance of each texel's cell of the bilinear lookup × `sin θ` (a piecewise-constant
+//!   2-D distribution over the equirectangular image, pdf per solid angle `p(u, v) / (2π² sin θ)`);
+//!   a constant one cosine-weighted about the shading normal (uniformly over the sphere at points
+//!   that transmit).
 //! - Emissive triangles: two-sided, radiance = the material's emission, sampled by area.
 //!
 //! Point and spot lights without a radius, and a sun below ~0.16°, are invisible to camera and BSDF
@@ -34,7 +48,9 @@ use crate::bvh::Ray;
 use crate::error::Result;
 use crate::geometry::Geometry;
 use crate::math::{Frame, V3};
-use crate::sampling::{concentric_disk, uniform_cone, uniform_sphere, uniform_triangle, Distribution1D};
+use crate::sampling::{
+    concentric_disk, cosine_hemisphere, uniform_cone, uniform_sphere, uniform_triangle, Distribution1D, Distribution2D,
+};
 use crate::scene::{AreaShape, Light, Scene};
 use crate::texture::Texture;
 use std::f32::consts::PI;
@@ -119,11 +135,154 @@ pub struct LightSample {
     pub delta: bool,
 }
 
+/// Share of a light's pick probability that follows the scene-wide power estimate (among the
+/// lights that can reach the shading point) rather than the per-point one.
+pub const PICK_FLOOR: f32 = 0.1;
+
+/// Pick items (analytic lights, then the group of emissive triangles) whose weights a
+/// [`LightPick`] keeps; further ones are recomputed when asked.
+const CACHED: usize = 8;
+
+/// What the light choice knows of a shading point.
+#[derive(Clone, Copy, Debug)]
+pub struct ShadingPoint {
+    pub p: V3,
+    /// Shading normal on the side light is scattered to (unit).
+    pub n: V3,
+    /// Light from both sides of `n` can scatter (a transmission lobe): no cosine bound.
+    pub two_sided: bool,
+}
+
+/// The light choice at one shading point: the per-point weights of the pick items, their sum,
+/// and the summed power weights of the items that can reach the point.
+#[derive(Clone, Copy, Debug)]
+pub struct LightPick {
+    pub sp: ShadingPoint,
+    total: f32,
+    base_total: f32,
+    /// Weight per item (the first [`CACHED`]); negative: the item cannot reach the point.
+    w: [f32; CACHED],
+}
+
+/// The world image's sampling distribution (see the module docs).
+#[derive(Clone, Debug)]
+struct EnvSampler {
+    dist: Distribution2D,
+    /// `sin, cos` of minus the world's rotation about +Y (as [`Environment::eval`]).
+    sin_cos: (f32, f32),
+}
+
+impl EnvSampler {
+    /// Built from the luminance of `tex` (times nothing: the strength scales every cell alike).
+    fn new(tex: &Texture, rotation: f32) -> Option<EnvSampler> {
+        let (w, h) = (tex.width(), tex.height());
+        if w == 0 || h == 0 {
+            return None;
+        }
+        let lum: Vec<f32> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| tex.texel(x as isize, y as isize).max(V3::ZERO).luminance())
+            .collect();
+        let at = |x: isize, y: isize| {
+            let (xi, yi) = (x.rem_euclid(w as isize) as usize, y.clamp(0, h as isize - 1) as usize);
+            lum[yi * w + xi]
+        };
+        // The mean of the bilinear lookup over cell (x, y) is the [1, 6, 1] / 8 filter of the
+        // texels in each axis (u wraps, v clamps, as `Texture::sample`): positive wherever the
+        // lookup is positive somewhere in the cell.
+        let k = [0.125f32, 0.75, 0.125];
+        let mut weights = vec![0f32; w * h];
+        for y in 0..h {
+            let sin_t = (PI * (y as f32 + 0.5) / h as f32).sin();
+            for x in 0..w {
+                let mut m = 0.0;
+                for (dy, ky) in k.iter().enumerate() {
+                    for (dx, kx) in k.iter().enumerate() {
+                        m += ky * kx * at(x as isize + dx as isize - 1, y as isize + dy as isize - 1);
+                    }
+                }
+                weights[y * w + x] = m * sin_t;
+            }
+        }
+        let dist = Distribution2D::new(&weights, w, h)?;
+        if dist.is_empty() {
+            return None;
+        }
+        Some(EnvSampler {
+            dist,
+            sin_cos: (-rotation).sin_cos(),
+        })
+    }
+
+    /// The direction (looking along it) of image coordinates `(u, v)` (`v = 0` the top row),
+    /// and `sin θ`.
+    fn direction(&self, u: f32, v: f32) -> (V3, f32) {
+        let theta = PI * v;
+        let phi = 2.0 * PI * (0.5 - u);
+        let (st, ct) = theta.sin_cos();
+        let (sp, cp) = phi.sin_cos();
+        let d = V3::new(st * cp, ct, -st * sp);
+        // Undo the rotation `Environment::eval` applies (its transpose).
+        let (s, c) = self.sin_cos;
+        (V3::new(c * d.x - s * d.z, d.y, s * d.x + c * d.z), st)
+    }
+
+    #[inline]
+    fn sample(&self, u1: f32, u2: f32) -> Option<(V3, f32)> {
+        let ([u, v], pdf) = self.dist.sample(u1, u2)?;
+        let (d, sin_t) = self.direction(u, v);
+        if !(sin_t > 0.0 && pdf > 0.0) {
+            return None;
+        }
+        Some((d, pdf / (2.0 * PI * PI * sin_t)))
+    }
+
+    /// Solid-angle density of [`EnvSampler::sample`] along `d` (unit).
+    #[inline]
+    fn pdf(&self, d: V3) -> f32 {
+        let (s, c) = self.sin_cos;
+        let d = V3::new(c * d.x + s * d.z, d.y, -s * d.x + c * d.z);
+        let sin_t = (d.x * d.x + d.z * d.z).sqrt();
+        if !(sin_t > 0.0) {
+            return 0.0;
+        }
+        let u = 0.5 - (-d.z).atan2(d.x) / (2.0 * PI);
+        let v = 0.5 - d.y.atan2(sin_t) / PI;
+        self.dist.pdf(u, v) / (2.0 * PI * PI * sin_t)
+    }
+}
+
+/// `max cos` between `n` and the directions within angle `α` of a direction at cosine `cos_t`
+/// from `n` (`cos(max(0, θ − α))`, clamped at 0).
+#[inline(always)]
+fn cos_bound(cos_t: f32, sin_a: f32, cos_a: f32) -> f32 {
+    if cos_t >= cos_a {
+        return 1.0;
+    }
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    (cos_t * cos_a + sin_t * sin_a).max(0.0)
+}
+
 pub struct Lights {
     pub lights: Vec<LightKind>,
-    dist: Distribution1D,
+    /// Scene-wide power estimate of every light (the floor of the per-point choice).
+    base: Distribution1D,
+    /// Lights `0..analytic` are the scene's lights and the world; the rest emissive triangles.
+    analytic: usize,
+    /// Luminance per light (for the per-point weights): point / spot intensity, area radiance,
+    /// sun irradiance; unused for the world and triangles.
+    lum: Vec<f32>,
+    /// Emissive triangles: power distribution among them, their summed power weight, their
+    /// bounding sphere and total power (luminance).
+    tri_dist: Distribution1D,
+    tri_base: f32,
+    tri_bounds: (V3, f32),
+    tri_power: f32,
     pub env: Option<Environment>,
     env_index: Option<usize>,
+    env_sampler: Option<EnvSampler>,
+    /// The world's luminance to first order: mean radiance `a` and `b` of `L(ω) ≈ a + b·ω`.
+    env_sh: (f32, V3),
     area_indices: Vec<usize>,
     /// Suns with an angular size (hit by rays that escape).
     sun_indices: Vec<usize>,
@@ -174,6 +333,35 @@ impl SphereCone {
     }
 }
 
+/// The first-order spherical-harmonic fit `L(ω) ≈ a + b·ω` of an image world's luminance
+/// (times `scale`): `a = ∫L / 4π`, `b = 3 ∫L ω / 4π`, summed over the texels' solid angles.
+fn env_harmonics(tex: &Texture, rotation: f32, scale: f32) -> (f32, V3) {
+    let (w, h) = (tex.width(), tex.height());
+    let (s, c) = (-rotation).sin_cos();
+    let (mut a, mut b) = (0f64, [0f64; 3]);
+    for y in 0..h {
+        let theta = PI * (y as f32 + 0.5) / h as f32;
+        let (st, ct) = theta.sin_cos();
+        let d_omega = st as f64 * (PI as f64 / h as f64) * (2.0 * PI as f64 / w as f64);
+        for x in 0..w {
+            let phi = 2.0 * PI * (0.5 - (x as f32 + 0.5) / w as f32);
+            let (sp, cp) = phi.sin_cos();
+            let d = V3::new(st * cp, ct, -st * sp);
+            let d = V3::new(c * d.x - s * d.z, d.y, s * d.x + c * d.z);
+            let l = tex.texel(x as isize, y as isize).max(V3::ZERO).luminance() as f64 * d_omega;
+            a += l;
+            b[0] += l * d.x as f64;
+            b[1] += l * d.y as f64;
+            b[2] += l * d.z as f64;
+        }
+    }
+    let k = scale as f64 / (4.0 * std::f64::consts::PI);
+    (
+        (a * k) as f32,
+        V3::new((3.0 * b[0] * k) as f32, (3.0 * b[1] * k) as f32, (3.0 * b[2] * k) as f32),
+    )
+}
+
 impl LightKind {
     /// A spot light's cone mask for the direction `from_light` (light → shading point,
     /// any length); 1 for every other light.
@@ -217,6 +405,7 @@ impl Lights {
         let mut area_indices = Vec::new();
         let mut sun_indices = Vec::new();
         let mut sphere_indices = Vec::new();
+        let mut lum = Vec::new();
         for l in &scene.lights {
             let color = V3::from_arr(l.color().rgb());
             let dir = l
@@ -243,6 +432,7 @@ impl Lights {
                         camera: *visible_to_camera && *radius > 0.0,
                     });
                     power.push(p * color.luminance());
+                    lum.push(intensity.luminance());
                 }
                 Light::Spot {
                     position,
@@ -269,6 +459,7 @@ impl Lights {
                         camera: *visible_to_camera && *radius > 0.0,
                     });
                     power.push(p * color.luminance());
+                    lum.push(intensity.luminance());
                 }
                 Light::Area {
                     position,
@@ -293,6 +484,7 @@ impl Lights {
                         camera: *visible_to_camera,
                     });
                     power.push(p * color.luminance());
+                    lum.push((color * (*p / (PI * area))).luminance());
                 }
                 Light::Sun {
                     strength, angle_deg, ..
@@ -315,11 +507,14 @@ impl Lights {
                         omega,
                     });
                     power.push(strength * color.luminance() * PI * radius * radius);
+                    lum.push((color * *strength).luminance());
                 }
             }
         }
         let mut env = None;
         let mut env_index = None;
+        let mut env_sampler = None;
+        let mut env_sh = (0.0, V3::ZERO);
         if let Some(w) = &scene.world {
             let image = match &w.image {
                 Some(p) => Some(Texture::load_color(&scene.resolve(p))?),
@@ -345,14 +540,25 @@ impl Lights {
                 image,
                 rotation: w.rotation_deg.to_radians(),
             };
-            let lum = (radiance * mean).luminance();
-            if lum > 0.0 {
+            let lum_mean = (radiance * mean).luminance();
+            if lum_mean > 0.0 {
                 env_index = Some(lights.len());
                 lights.push(LightKind::Env);
-                power.push(2.0 * PI * PI * radius * radius * lum);
+                power.push(2.0 * PI * PI * radius * radius * lum_mean);
+                lum.push(lum_mean);
+                match &e.image {
+                    Some(tex) => {
+                        env_sampler = EnvSampler::new(tex, e.rotation);
+                        env_sh = env_harmonics(tex, e.rotation, radiance.luminance());
+                    }
+                    None => env_sh = (lum_mean, V3::ZERO),
+                }
             }
             env = Some(e);
         }
+        let analytic = lights.len();
+        let mut tri_power = Vec::new();
+        let (mut lo, mut hi) = (V3::splat(f32::INFINITY), V3::splat(f32::NEG_INFINITY));
         for (prim, a) in geom.attrs.iter_mut().enumerate() {
             let em = geom.materials[a.material as usize].emission;
             if em.max_comp() > 0.0 {
@@ -361,15 +567,37 @@ impl Lights {
                     prim: prim as u32,
                     radiance: em,
                 });
-                power.push(2.0 * PI * a.area * em.luminance());
+                let tri = &geom.tris[prim];
+                for q in [tri.point(0.0, 0.0), tri.point(1.0, 0.0), tri.point(0.0, 1.0)] {
+                    lo = lo.min(q);
+                    hi = hi.max(q);
+                }
+                let w = 2.0 * PI * a.area * em.luminance();
+                power.push(w);
+                tri_power.push(w);
             }
         }
-        let dist = Distribution1D::new(&power);
+        let base = Distribution1D::new(&power);
+        let tri_dist = Distribution1D::new(&tri_power);
+        let tri_base = (analytic..lights.len()).map(|i| base.pmf(i)).sum();
+        let tri_bounds = if tri_power.is_empty() {
+            (V3::ZERO, 0.0)
+        } else {
+            ((lo + hi) * 0.5, (hi - lo).length() * 0.5)
+        };
         Ok(Lights {
             lights,
-            dist,
+            base,
+            analytic,
+            lum,
+            tri_base,
+            tri_bounds,
+            tri_power: tri_dist.total,
+            tri_dist,
             env,
             env_index,
+            env_sampler,
+            env_sh,
             area_indices,
             sun_indices,
             sphere_indices,
@@ -377,25 +605,206 @@ impl Lights {
     }
 
     pub fn is_empty(&self) -> bool {
-        self.dist.is_empty()
+        self.base.is_empty()
     }
 
-    /// Probability of picking light `i`.
-    pub fn pick_pmf(&self, i: usize) -> f32 {
-        self.dist.pmf(i)
-    }
-
-    /// Samples one light for the shading point `p`.
+    /// Number of pick items: the analytic lights, then one for all emissive triangles.
     #[inline(always)]
-    pub fn sample(&self, geom: &Geometry, p: V3, u_pick: f32, u1: f32, u2: f32) -> Option<LightSample> {
-        if self.dist.is_empty() {
+    fn items(&self) -> usize {
+        self.analytic + (self.tri_dist.len() > 0) as usize
+    }
+
+    #[inline(always)]
+    fn item_base(&self, k: usize) -> f32 {
+        if k < self.analytic {
+            self.base.pmf(k)
+        } else {
+            self.tri_base
+        }
+    }
+
+    /// The per-point weight of pick item `k` at `sp` (an estimate of its unoccluded irradiance
+    /// there, see the module docs), or `None` when it cannot light the point at all.
+    #[inline(always)]
+    fn item_weight(&self, k: usize, sp: &ShadingPoint) -> Option<f32> {
+        let facing = |cos_t: f32, sin_a: f32, cos_a: f32| {
+            if sp.two_sided {
+                cos_bound(cos_t.abs(), sin_a, cos_a)
+            } else {
+                cos_bound(cos_t, sin_a, cos_a)
+            }
+        };
+        if k >= self.analytic {
+            let (c, r) = self.tri_bounds;
+            let d2 = (c - sp.p).dot(c - sp.p).max(r * r);
+            return Some(self.tri_power / (2.0 * PI * d2.max(1e-12)));
+        }
+        let lum = self.lum[k];
+        match &self.lights[k] {
+            LightKind::Point { p, radius, .. } | LightKind::Spot { p, radius, .. } => {
+                let to = *p - sp.p;
+                let d2 = to.dot(to);
+                let mask = self.lights[k].spot_mask(-to);
+                if !(mask > 0.0) {
+                    return None;
+                }
+                let d = d2.sqrt();
+                let r = *radius;
+                let cos_t = sp.n.dot(to) / d;
+                let f = if r > 0.0 && d > r {
+                    let sin_a = r / d;
+                    facing(cos_t, sin_a, (1.0 - sin_a * sin_a).sqrt())
+                } else if r > 0.0 {
+                    1.0
+                } else {
+                    facing(cos_t, 0.0, 1.0)
+                };
+                let w = lum * mask * f / d2.max(r * r);
+                Some(if w.is_finite() { w } else { 0.0 })
+            }
+            LightKind::Area {
+                c, ex, ey, n, disk, area, ..
+            } => {
+                let to = sp.p - *c;
+                let h = to.dot(*n);
+                if !(h > 0.0) {
+                    return None; // behind the one-sided emitter (or in its plane)
+                }
+                let d2 = to.dot(to);
+                let d = d2.sqrt();
+                let r2 = if *disk {
+                    ex.dot(*ex).max(ey.dot(*ey))
+                } else {
+                    ex.dot(*ex) + ey.dot(*ey)
+                };
+                let (sin_a, cos_a) = if d2 > r2 {
+                    let s2 = r2 / d2;
+                    (s2.sqrt(), (1.0 - s2).sqrt())
+                } else {
+                    (1.0, 0.0)
+                };
+                let emit = cos_bound(h / d, sin_a, cos_a);
+                let recv = facing(-sp.n.dot(to) / d, sin_a, cos_a);
+                Some(lum * (area * emit / d2).min(PI) * recv)
+            }
+            LightKind::Sun { dir, cos_max, .. } => {
+                let cos_a = *cos_max;
+                let sin_a = (1.0 - cos_a * cos_a).max(0.0).sqrt();
+                Some(lum * facing(-sp.n.dot(*dir), sin_a, cos_a))
+            }
+            LightKind::Env => {
+                let (a, b) = self.env_sh;
+                if sp.two_sided {
+                    Some(2.0 * PI * a)
+                } else {
+                    // ∫ (a + b·ω) cos over the hemisphere = π a + (2π/3) b·n; the first-order
+                    // fit can dip below the true (non-negative) value, hence the clamp.
+                    Some((PI * a + (2.0 * PI / 3.0) * b.dot(sp.n)).max(0.1 * PI * a))
+                }
+            }
+            LightKind::Tri { .. } => Some(0.0),
+        }
+    }
+
+    /// The light choice at `sp` (computes the per-point weights).
+    #[inline(always)]
+    pub fn pick_at(&self, sp: ShadingPoint) -> LightPick {
+        let mut pick = LightPick {
+            sp,
+            total: 0.0,
+            base_total: 0.0,
+            w: [-1.0; CACHED],
+        };
+        for k in 0..self.items() {
+            let w = self.item_weight(k, &sp);
+            if let Some(w) = w {
+                pick.total += w;
+                pick.base_total += self.item_base(k);
+            }
+            if k < CACHED {
+                pick.w[k] = w.unwrap_or(-1.0);
+            }
+        }
+        pick
+    }
+
+    /// Probability that `pick` chooses item `k`.
+    #[inline(always)]
+    fn item_pmf(&self, pick: &LightPick, k: usize) -> f32 {
+        let w = if k < CACHED {
+            pick.w[k]
+        } else {
+            self.item_weight(k, &pick.sp).unwrap_or(-1.0)
+        };
+        if w < 0.0 {
+            return 0.0;
+        }
+        let base = if pick.base_total > 0.0 {
+            self.item_base(k) / pick.base_total
+        } else {
+            0.0
+        };
+        match (pick.total > 0.0, pick.base_total > 0.0) {
+            (true, true) => (1.0 - PICK_FLOOR) * (w / pick.total) + PICK_FLOOR * base,
+            (true, false) => w / pick.total,
+            (false, _) => base,
+        }
+    }
+
+    /// Probability that the light choice `pick` picks light `i`.
+    #[inline(always)]
+    pub fn pick_pmf_at(&self, pick: &LightPick, i: usize) -> f32 {
+        if i < self.analytic {
+            self.item_pmf(pick, i)
+        } else {
+            self.item_pmf(pick, self.analytic) * self.tri_dist.pmf(i - self.analytic)
+        }
+    }
+
+    /// Light `i` and its pick probability, chosen by `pick` with the uniform number `u`.
+    #[inline(always)]
+    fn choose(&self, pick: &LightPick, u: f32) -> Option<(usize, f32)> {
+        let mut acc = 0.0;
+        let mut chosen = None;
+        for k in 0..self.items() {
+            let p = self.item_pmf(pick, k);
+            if p > 0.0 {
+                chosen = Some((k, p, acc));
+                acc += p;
+                if u < acc {
+                    break;
+                }
+            }
+        }
+        let (k, p, lo) = chosen?;
+        if k < self.analytic {
+            return Some((k, p));
+        }
+        let (t, _) = self.tri_dist.sample(((u - lo) / p).clamp(0.0, 0.999_999_94));
+        Some((self.analytic + t, p * self.tri_dist.pmf(t)))
+    }
+
+    /// Solid-angle density with which [`Lights::sample`] at `sp` samples the world along `d`
+    /// (before the pick probability).
+    #[inline(always)]
+    fn env_dir_pdf(&self, sp: &ShadingPoint, d: V3) -> f32 {
+        match &self.env_sampler {
+            Some(s) => s.pdf(d),
+            None if sp.two_sided => 1.0 / (4.0 * PI),
+            None => (d.dot(sp.n) / PI).max(0.0),
+        }
+    }
+
+    /// Samples one light for the shading point of `pick`.
+    #[inline(always)]
+    pub fn sample(&self, geom: &Geometry, pick: &LightPick, u_pick: f32, u1: f32, u2: f32) -> Option<LightSample> {
+        let (i, pick_p) = self.choose(pick, u_pick)?;
+        if !(pick_p > 0.0) {
             return None;
         }
-        let (i, _) = self.dist.sample(u_pick);
-        let pick = self.dist.pmf(i);
-        if pick <= 0.0 {
-            return None;
-        }
+        let sp = pick.sp;
+        let p = sp.p;
+        let pick = pick_p;
         let towards = |q: V3| {
             let d = q - p;
             let dist = d.length();
@@ -504,12 +913,22 @@ impl Lights {
             }
             LightKind::Env => {
                 let env = self.env.as_ref()?;
-                let wi = uniform_sphere(u1, u2);
+                let (wi, pdf) = match &self.env_sampler {
+                    Some(s) => s.sample(u1, u2)?,
+                    None if sp.two_sided => (uniform_sphere(u1, u2), 1.0 / (4.0 * PI)),
+                    None => {
+                        let wi = Frame::new(sp.n).to_world(cosine_hemisphere(u1, u2));
+                        (wi, wi.dot(sp.n) / PI)
+                    }
+                };
+                if !(pdf > 0.0) {
+                    return None;
+                }
                 Some(LightSample {
                     li: env.eval(wi),
                     wi,
                     dist: f32::INFINITY,
-                    pdf: pick / (4.0 * PI),
+                    pdf: pick * pdf,
                     delta: false,
                 })
             }
@@ -534,18 +953,26 @@ impl Lights {
         }
     }
 
-    /// The world's radiance along `d` and the light-sampling pdf of that direction.
+    /// The world's radiance along `d`.
     #[inline]
-    pub fn env_hit(&self, d: V3) -> Option<(V3, f32)> {
-        let env = self.env.as_ref()?;
-        let pdf = self.env_index.map(|i| self.dist.pmf(i) / (4.0 * PI)).unwrap_or(0.0);
-        Some((env.eval(d), pdf))
+    pub fn env_hit(&self, d: V3) -> Option<V3> {
+        Some(self.env.as_ref()?.eval(d))
     }
 
-    /// Suns with a cone (see the module docs) a ray escaping the scene along `d` sees: calls `f(radiance,
-    /// light_pdf)` for each.
+    /// The light-sampling pdf (solid angle, with the pick probability) of the world along `d`
+    /// at the shading point of `pick`.
+    #[inline]
+    pub fn env_pdf(&self, pick: &LightPick, d: V3) -> f32 {
+        match self.env_index {
+            Some(i) => self.pick_pmf_at(pick, i) * self.env_dir_pdf(&pick.sp, d),
+            None => 0.0,
+        }
+    }
+
+    /// Suns with a cone (see the module docs) a ray escaping the scene along `d` sees: calls
+    /// `f(radiance, light, direction_pdf)` for each (the pdf without the pick probability).
     #[inline(always)]
-    pub fn sun_hits(&self, d: V3, mut f: impl FnMut(V3, f32)) {
+    pub fn sun_hits(&self, d: V3, mut f: impl FnMut(V3, usize, f32)) {
         for &i in &self.sun_indices {
             if let LightKind::Sun {
                 dir,
@@ -555,38 +982,39 @@ impl Lights {
             } = &self.lights[i]
             {
                 if -d.dot(*dir) >= *cos_max {
-                    f(*irradiance / *omega, self.dist.pmf(i) / *omega);
+                    f(*irradiance / *omega, i, 1.0 / *omega);
                 }
             }
         }
     }
 
-    /// Light-sampling pdf (solid angle) of an emissive triangle hit at distance `t` with
-    /// `|cos|` between the ray and its normal.
-    pub fn tri_pdf(&self, geom: &Geometry, prim: u32, t: f32, cos_l: f32) -> f32 {
+    /// Light-sampling pdf (solid angle, with the pick probability of `pick`) of an emissive
+    /// triangle hit at distance `t` with `|cos|` between the ray and its normal.
+    pub fn tri_pdf(&self, geom: &Geometry, pick: &LightPick, prim: u32, t: f32, cos_l: f32) -> f32 {
         let a = &geom.attrs[prim as usize];
         if a.light == u32::MAX || cos_l <= 0.0 {
             return 0.0;
         }
-        self.dist.pmf(a.light as usize) * t * t / (cos_l * a.area)
+        self.pick_pmf_at(pick, a.light as usize) * t * t / (cos_l * a.area)
     }
 
-    /// Area and sphere lights hit by `ray` before `tmax`: calls `f(radiance, light_pdf, t)`
-    /// for each (lights do not occlude, so every one on the way counts).
+    /// Area and sphere lights hit by `ray` before `tmax`: calls `f(radiance, light,
+    /// direction_pdf, t)` for each, the pdf without the pick probability (lights do not
+    /// occlude, so every one on the way counts).
     #[inline(always)]
-    pub fn area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
+    pub fn area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, usize, f32, f32)) {
         self.area_hits_if(ray, tmax, false, f)
     }
 
     /// [`Lights::area_hits`] for a camera ray: only the area and sphere lights visible to the
-    /// camera (the light pdf passed to `f` is then meaningless: no MIS at the camera).
+    /// camera (the pdf passed to `f` is then meaningless: no MIS at the camera).
     #[inline(always)]
-    pub fn camera_area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
+    pub fn camera_area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, usize, f32, f32)) {
         self.area_hits_if(ray, tmax, true, f)
     }
 
     #[inline(always)]
-    fn area_hits_if(&self, ray: &Ray, tmax: f32, camera_ray: bool, mut f: impl FnMut(V3, f32, f32)) {
+    fn area_hits_if(&self, ray: &Ray, tmax: f32, camera_ray: bool, mut f: impl FnMut(V3, usize, f32, f32)) {
         for &i in &self.area_indices {
             if let LightKind::Area {
                 c,
@@ -619,8 +1047,7 @@ impl Lights {
                     a.abs() <= 1.0 && b.abs() <= 1.0
                 };
                 if inside {
-                    let pdf = self.dist.pmf(i) * t * t / (-denom * area);
-                    f(*radiance, pdf, t);
+                    f(*radiance, i, t * t / (-denom * area), t);
                 }
             }
         }
@@ -662,14 +1089,14 @@ impl Lights {
             let radiance = *intensity / (PI * radius * radius) * mask;
             if camera_ray {
                 // The camera sees the sphere wherever its rays hit it (no MIS to match).
-                f(radiance, 0.0, t);
+                f(radiance, i, 0.0, t);
                 continue;
             }
             // Only where light sampling samples the sphere as a cone (else it is a point).
             let Some(cone) = SphereCone::new(*c, *radius, ray.o) else {
                 continue;
             };
-            f(radiance, self.dist.pmf(i) / cone.omega, t);
+            f(radiance, i, 1.0 / cone.omega, t);
         }
     }
 }

@@ -1,0 +1,83 @@
+//! Noise of a render against a reference, pass by pass (the noise benchmark,
+//! `scripts/bench-noise-vs-cycles.sh`).
+//!
+//! ```text
+//! noise_rmse render SCENE.toml SPP OUT.exr [SEED]   # native render; prints "RENDER_S <seconds>"
+//! noise_rmse rmse REF.exr TEST.exr                  # prints "RMSE <pass> <rmse> <test mean> <ref mean>"
+//! ```
+//!
+//! `render` times the path tracing alone (after the mesh load and BVH build, as Cycles'
+//! `path_trace` phase in `run_cycles.py`). `rmse` reads two multilayer EXRs of Cycles pass names
+//! (ours or Cycles'), and for every RGB pass present in both (not Normal) prints the
+//! root-mean-square difference over pixels and channels and both image means.
+use pixl_core::exrio::{read_exr_channels, ExrChannels};
+use pixl_core::passes;
+use std::path::Path;
+
+/// The channel `<…>.<pass>.<ch>` by long or short pass name.
+fn channel<'a>(exr: &'a ExrChannels, pass: &passes::Pass, ch: &str) -> Option<&'a [f32]> {
+    [pass.long, pass.short].iter().find_map(|name| {
+        let suffix = format!("{name}.{ch}");
+        exr.channels
+            .iter()
+            .find(|(n, _)| *n == suffix || n.ends_with(&format!(".{suffix}")))
+            .map(|(_, d)| d.as_slice())
+    })
+}
+
+fn render(scene: &str, spp: &str, out: &str, seed: Option<&String>) -> Result<(), Box<dyn std::error::Error>> {
+    let scene = pixl_render::Scene::load(Path::new(scene))?;
+    let opts = pixl_render::RenderOptions {
+        spp: spp.parse()?,
+        seed: seed.map(|s| s.parse()).transpose()?.unwrap_or(0),
+        ..Default::default()
+    };
+    let r = pixl_render::integrator::Renderer::new(&scene, &opts)?;
+    let t = std::time::Instant::now();
+    let film = r.render(&|_, _| {});
+    let secs = t.elapsed().as_secs_f64();
+    film.write_exr(Path::new(out))?;
+    println!("RENDER_S {secs:.4}");
+    Ok(())
+}
+
+fn rmse(reference: &str, test: &str) -> Result<(), Box<dyn std::error::Error>> {
+    let a = read_exr_channels(Path::new(reference))?;
+    let b = read_exr_channels(Path::new(test))?;
+    if (a.width, a.height) != (b.width, b.height) {
+        return Err(format!("sizes differ: {}x{} vs {}x{}", a.width, a.height, b.width, b.height).into());
+    }
+    for pass in passes::ALL {
+        if pass.channels.len() < 3 || *pass == passes::NORMAL {
+            continue;
+        }
+        let (mut sr, mut st, mut se, mut n) = (0f64, 0f64, 0f64, 0usize);
+        for ch in ["R", "G", "B"] {
+            let (Some(x), Some(y)) = (channel(&a, pass, ch), channel(&b, pass, ch)) else {
+                continue;
+            };
+            for (r, t) in x.iter().zip(y) {
+                let (r, t) = (*r as f64, *t as f64);
+                sr += r;
+                st += t;
+                se += (t - r) * (t - r);
+                n += 1;
+            }
+        }
+        if n == 0 {
+            continue;
+        }
+        let n = n as f64;
+        println!("RMSE {} {:.6e} {:.6} {:.6}", pass.short, (se / n).sqrt(), st / n, sr / n);
+    }
+    Ok(())
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    match args.as_slice() {
+        [cmd, scene, spp, out, rest @ ..] if cmd == "render" && rest.len() <= 1 => render(scene, spp, out, rest.first()),
+        [cmd, reference, test] if cmd == "rmse" => rmse(reference, test),
+        _ => Err("usage: noise_rmse render SCENE.toml SPP OUT.exr [SEED] | noise_rmse rmse REF.exr TEST.exr".into()),
+    }
+}
