@@ -14,11 +14,12 @@
 #                 the same reference
 #   DEMO_W, MESH_W  render widths of the demo (aspect 160:128) and mesh (square) scenes [256, 256]
 #   REF_SPP       spp of the references [1024]
-#   SPPS          spp of the measured renders ["4 16 64"]
+#   SPPS          spp of the measured renders ["1 4 16 64"]
 #   THREADS       threads for both renderers [2]
 #   SCENES        which scenes ["demo mesh"]
 # References already in OUT_DIR are reused (delete them to remake). Results: OUT_DIR/results.tsv
-# (scene renderer spp pass rmse seconds test_mean ref_mean) and OUT_DIR/summary.md.
+# (scene renderer spp pass rmse seconds test_mean ref_mean under_half: the share of lit pixels
+# under half their reference value) and OUT_DIR/summary.md.
 set -euo pipefail
 out=${1:?usage: bench-noise-vs-cycles.sh OUT_DIR}
 root=$(cd "$(dirname "$0")/.." && pwd)
@@ -30,7 +31,7 @@ RUN_CYCLES=${RUN_CYCLES:-$root/../shared/tools/run_cycles.py}
 DEMO_W=${DEMO_W:-256}
 MESH_W=${MESH_W:-256}
 REF_SPP=${REF_SPP:-1024}
-SPPS=${SPPS:-"4 16 64"}
+SPPS=${SPPS:-"1 4 16 64"}
 THREADS=${THREADS:-2}
 SCENES=${SCENES:-"demo mesh"}
 export RAYON_NUM_THREADS=$THREADS
@@ -90,7 +91,7 @@ for s in $SCENES; do
             esac
             echo "$s $r $spp spp: $t s"
             "$NOISE_RMSE" rmse "$ref" "$exr" | awk -v s="$s" -v r="$r" -v n="$spp" -v t="$t" \
-                '/^RMSE/ {print s "\t" r "\t" n "\t" $2 "\t" $3 "\t" t "\t" $4 "\t" $5}' >> "$res"
+                '/^RMSE/ {print s "\t" r "\t" n "\t" $2 "\t" $3 "\t" t "\t" $4 "\t" $5 "\t" $6}' >> "$res"
         done
     done
 done
@@ -101,9 +102,11 @@ out, ref_spp = sys.argv[1], sys.argv[2]
 rows = [l.rstrip("\n").split("\t") for l in open(f"{out}/results.tsv") if l.strip()]
 by = collections.defaultdict(dict)
 times = {}
-for scene, r, spp, p, rmse, t, tm, rm in rows:
+half = {}
+for scene, r, spp, p, rmse, t, tm, rm, h in rows:
     by[(scene, int(spp), p)][r] = (float(rmse), float(t), float(rm))
     times[(scene, r, int(spp))] = float(t)
+    half[(scene, r, int(spp), p)] = float(h)
 scenes = sorted({k[0] for k in by}, key=["demo", "mesh"].index)
 for scene in scenes:
     print(f"\n**{scene}**: path-tracing time (s) per spp: " + "; ".join(
@@ -127,5 +130,9 @@ for scene in scenes:
         rel = f"{100 * (om - cm) / cm:+.2f} %" if cm else "–"
         cells = ([f"{eps['ours-old']:.3g}"] if has_old else []) + [f"{eps['ours']:.3g}", f"{eps['cycles']:.3g}", f"{eps['ours'] / eps['cycles']:.2f}"]
         print(f"| {p} | {om:.5f} / {cm:.5f} ({rel}) | {spp} | " + " | ".join(cells) + " |")
+for scene in scenes:
+    for spp in sorted({k[2] for k in half if k[0] == scene}):
+        print(f"\n{scene}, {spp} spp: share of lit pixels with less than half their reference Diffuse Direct: " + ", ".join(
+            f"{r} {100 * half[(scene, r, spp, 'DiffDir')]:.2f} %" for r in ("ours-old", "ours", "cycles") if (scene, r, spp, "DiffDir") in half))
 print(f"\nerror per second = 1 / (RMSE² · path-tracing seconds), RMSE against each renderer's own {ref_spp}-spp reference.")
 EOF

@@ -3,13 +3,14 @@
 //!
 //! ```text
 //! noise_rmse render SCENE.toml SPP OUT.exr [SEED]   # native render; prints "RENDER_S <seconds>"
-//! noise_rmse rmse REF.exr TEST.exr                  # prints "RMSE <pass> <rmse> <test mean> <ref mean>"
+//! noise_rmse rmse REF.exr TEST.exr                  # "RMSE <pass> <rmse> <test mean> <ref mean> <under half>"
 //! ```
 //!
 //! `render` times the path tracing alone (after the mesh load and BVH build, as Cycles'
 //! `path_trace` phase in `run_cycles.py`). `rmse` reads two multilayer EXRs of Cycles pass names
 //! (ours or Cycles'), and for every RGB pass present in both (not Normal) prints the
-//! root-mean-square difference over pixels and channels and both image means.
+//! root-mean-square difference over pixels and channels, both image means, and the share of the
+//! pixels lit in the reference (sum of R, G, B) that get less than half of it in the test.
 use pixl_core::exrio::{read_exr_channels, ExrChannels};
 use pixl_core::passes;
 use std::path::Path;
@@ -52,23 +53,38 @@ fn rmse(reference: &str, test: &str) -> Result<(), Box<dyn std::error::Error>> {
             continue;
         }
         let (mut sr, mut st, mut se, mut n) = (0f64, 0f64, 0f64, 0usize);
+        // Per pixel, the sum over R, G, B of reference and test.
+        let (mut pr, mut pt) = (vec![0f64; a.width * a.height], vec![0f64; a.width * a.height]);
         for ch in ["R", "G", "B"] {
             let (Some(x), Some(y)) = (channel(&a, pass, ch), channel(&b, pass, ch)) else {
                 continue;
             };
-            for (r, t) in x.iter().zip(y) {
+            for (i, (r, t)) in x.iter().zip(y).enumerate() {
                 let (r, t) = (*r as f64, *t as f64);
                 sr += r;
                 st += t;
                 se += (t - r) * (t - r);
                 n += 1;
+                pr[i] += r;
+                pt[i] += t;
             }
         }
         if n == 0 {
             continue;
         }
         let n = n as f64;
-        println!("RMSE {} {:.6e} {:.6} {:.6}", pass.short, (se / n).sqrt(), st / n, sr / n);
+        // Share of the pixels lit in the reference that get less than half of it.
+        let lit = pr.iter().filter(|r| **r > 1e-6).count();
+        let dark = pr.iter().zip(&pt).filter(|(r, t)| **r > 1e-6 && **t < 0.5 * **r).count();
+        let half = if lit > 0 { dark as f64 / lit as f64 } else { 0.0 };
+        println!(
+            "RMSE {} {:.6e} {:.6} {:.6} {:.5}",
+            pass.short,
+            (se / n).sqrt(),
+            st / n,
+            sr / n,
+            half
+        );
     }
     Ok(())
 }

@@ -4,7 +4,9 @@
 //! unoccluded irradiance bounded over the light's extent: intensity or radiance × a bound of the
 //! emitter's and the receiver's cosines (and a spot's cone mask) / distance², capped at `π L`
 //! for area lights; a sun's irradiance × the receiver's cosine bound; the world's irradiance on
-//! the normal from its first spherical harmonics; the emissive triangles as one group (by power,
+//! the normal from its first spherical harmonics, times the share of its light above its mean
+//! radiance (what BSDF samples find poorly; 0 for a constant world, which BSDF samples and MIS
+//! handle); the emissive triangles as one group (by power,
 //! over the distance to their bounds), inside which a triangle is picked by power. A share
 //! [`PICK_FLOOR`] of the probability follows the lights' scene-wide power among the lights that
 //! can reach the point at all (not behind a one-sided area light, not outside a spot's cone),
@@ -283,6 +285,9 @@ pub struct Lights {
     env_sampler: Option<EnvSampler>,
     /// The world's luminance to first order: mean radiance `a` and `b` of `L(ω) ≈ a + b·ω`.
     env_sh: (f32, V3),
+    /// Share of the world's light above its mean radiance, `∫ max(0, L − L̄) / ∫ L` (0 for a
+    /// constant world): the part light sampling is needed for (see [`Lights::item_weight`]).
+    env_peaked: f32,
     area_indices: Vec<usize>,
     /// Suns with an angular size (hit by rays that escape).
     sun_indices: Vec<usize>,
@@ -360,6 +365,29 @@ fn env_harmonics(tex: &Texture, rotation: f32, scale: f32) -> (f32, V3) {
         (a * k) as f32,
         V3::new((3.0 * b[0] * k) as f32, (3.0 * b[1] * k) as f32, (3.0 * b[2] * k) as f32),
     )
+}
+
+/// `∫ max(0, L − L̄) dω / ∫ L dω` of an image world's luminance `L` (`L̄` its mean over the
+/// sphere), by texel solid angles: 0 for a constant image, near 1 for a small bright sun.
+fn env_peak_share(tex: &Texture) -> f32 {
+    let (w, h) = (tex.width(), tex.height());
+    let mut texels = Vec::with_capacity(w * h);
+    let (mut sum, mut area) = (0f64, 0f64);
+    for y in 0..h {
+        let d_omega = (PI * (y as f32 + 0.5) / h as f32).sin() as f64;
+        for x in 0..w {
+            let l = tex.texel(x as isize, y as isize).max(V3::ZERO).luminance() as f64;
+            texels.push((l, d_omega));
+            sum += l * d_omega;
+            area += d_omega;
+        }
+    }
+    if !(sum > 0.0) {
+        return 0.0;
+    }
+    let mean = sum / area;
+    let above: f64 = texels.iter().map(|(l, d)| (l - mean).max(0.0) * d).sum();
+    (above / sum) as f32
 }
 
 impl LightKind {
@@ -515,6 +543,7 @@ impl Lights {
         let mut env_index = None;
         let mut env_sampler = None;
         let mut env_sh = (0.0, V3::ZERO);
+        let mut env_peaked = 0.0;
         if let Some(w) = &scene.world {
             let image = match &w.image {
                 Some(p) => Some(Texture::load_color(&scene.resolve(p))?),
@@ -550,6 +579,7 @@ impl Lights {
                     Some(tex) => {
                         env_sampler = EnvSampler::new(tex, e.rotation);
                         env_sh = env_harmonics(tex, e.rotation, radiance.luminance());
+                        env_peaked = env_peak_share(tex);
                     }
                     None => env_sh = (lum_mean, V3::ZERO),
                 }
@@ -598,6 +628,7 @@ impl Lights {
             env_index,
             env_sampler,
             env_sh,
+            env_peaked,
             area_indices,
             sun_indices,
             sphere_indices,
@@ -693,14 +724,20 @@ impl Lights {
                 Some(lum * facing(-sp.n.dot(*dir), sin_a, cos_a))
             }
             LightKind::Env => {
+                // Only the world's light above its mean is worth light samples: BSDF samples
+                // (MIS-weighted) already find a constant sky as well as light sampling could
+                // (for a Lambertian surface and a cosine-sampled sky, with the same density),
+                // so a constant world keeps only the floor and its picks go to the lights that
+                // need them.
                 let (a, b) = self.env_sh;
-                if sp.two_sided {
-                    Some(2.0 * PI * a)
+                let e = if sp.two_sided {
+                    2.0 * PI * a
                 } else {
                     // ∫ (a + b·ω) cos over the hemisphere = π a + (2π/3) b·n; the first-order
                     // fit can dip below the true (non-negative) value, hence the clamp.
-                    Some((PI * a + (2.0 * PI / 3.0) * b.dot(sp.n)).max(0.1 * PI * a))
-                }
+                    (PI * a + (2.0 * PI / 3.0) * b.dot(sp.n)).max(0.1 * PI * a)
+                };
+                Some(e * self.env_peaked)
             }
             LightKind::Tri { .. } => Some(0.0),
         }
@@ -1422,6 +1459,26 @@ mod tests {
                 0.05 + 0.01 * y as f32
             }
         }))
+    }
+
+    #[test]
+    fn only_the_light_of_a_world_above_its_mean_draws_light_samples() {
+        let flat = Texture::from_image(Image::from_fn(16, 8, 3, |_, _, _| 0.3));
+        assert!(env_peak_share(&flat).abs() < 1e-6);
+        let peaked = env_peak_share(&spot_image());
+        assert!(peaked > 0.5 && peaked < 1.0, "{peaked}");
+        // A constant world keeps only the floor of the pick probability.
+        let (_, lights) = lights_of(MANY);
+        let env = lights.env_index.expect("a world");
+        let sp = ShadingPoint {
+            p: V3::new(0.0, 0.01, 0.0),
+            n: V3::new(0.0, 1.0, 0.0),
+            two_sided: false,
+        };
+        let pick = lights.pick_at(sp);
+        assert_eq!(lights.item_weight(env, &sp), Some(0.0));
+        let floor = PICK_FLOOR * lights.base.pmf(env) / pick.base_total;
+        assert!((lights.pick_pmf_at(&pick, env) - floor).abs() < 1e-7);
     }
 
     #[test]
