@@ -17,7 +17,8 @@
 #   SPPS          spp of the measured renders ["1 4 16 64"]
 #   THREADS       threads for both renderers [2]
 #   SCENES        which scenes ["demo mesh"]
-# References already in OUT_DIR are reused (delete them to remake). Results: OUT_DIR/results.tsv
+# References already in OUT_DIR are reused (delete them to remake); SUMMARY_ONLY=1 only remakes the
+# summary from OUT_DIR/results.tsv. Results: OUT_DIR/results.tsv
 # (scene renderer spp pass rmse seconds test_mean ref_mean under_half: the share of lit pixels
 # under half their reference value) and OUT_DIR/summary.md.
 set -euo pipefail
@@ -69,16 +70,16 @@ cycles() { # scene spp exr seed -> prints path_trace seconds
 }
 
 # References (seed 1; the measured renders use seed 0, so they share no samples with them).
-for s in $SCENES; do
+[ -n "${SUMMARY_ONLY:-}" ] || for s in $SCENES; do
     [ -f "$out/$s/ref_ours.exr" ] || { t=$(ours "$s" "$REF_SPP" "$out/$s/ref_ours.exr" 1); echo "$s ours reference $REF_SPP spp: $t s"; }
     [ -f "$out/$s/ref_cycles.exr" ] || { t=$(cycles "$s" "$REF_SPP" "$out/$s/ref_cycles.exr" 1); echo "$s Cycles reference $REF_SPP spp: $t s"; }
     "$NOISE_RMSE" rmse "$out/$s/ref_cycles.exr" "$out/$s/ref_ours.exr" | sed "s/^RMSE /$s /" > "$out/$s/ref_means.txt"
 done
 
-# Measured renders, both renderers alternated per spp.
+# Measured renders, the renderers alternated per spp (SUMMARY_ONLY=1: only remake the summary).
 res=$out/results.tsv
-: > "$res"
-for s in $SCENES; do
+[ -n "${SUMMARY_ONLY:-}" ] || : > "$res"
+[ -n "${SUMMARY_ONLY:-}" ] || for s in $SCENES; do
     for spp in $SPPS; do
         runs="ours cycles"
         [ -n "${OLD_NOISE_RMSE:-}" ] && runs="ours-old $runs"
@@ -114,7 +115,7 @@ for scene in scenes:
         for spp in sorted({k[2] for k in times if k[0] == scene})))
     means = {}
     for l in open(f"{out}/{scene}/ref_means.txt"):
-        _, p, _, om, cm = l.split()
+        _, p, _, om, cm = l.split()[:5]
         means[p] = (float(om), float(cm))
     has_old = any("ours-old" in v for k, v in by.items() if k[0] == scene)
     head = "| pass | ours / Cycles ref. mean (rel. diff) | spp | " + ("ours-old | " if has_old else "") + "ours | Cycles | ours / Cycles |"
