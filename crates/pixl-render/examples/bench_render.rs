@@ -221,6 +221,7 @@ fn ray_throughput(r: &Renderer) {
             p: h.p,
             n,
             two_sided: false,
+            solid_angle: false,
         });
         let ls = r.lights.sample(g, &pick, rng.f32(), rng.f32(), rng.f32());
         let (d, tmax) = match ls {
@@ -282,6 +283,7 @@ fn ray_throughput(r: &Renderer) {
             p: h.p,
             n,
             two_sided: false,
+            solid_angle: false,
         });
         if let Some(ls) = r.lights.sample(g, &pick, rng.f32(), rng.f32(), rng.f32()) {
             let tmax = if ls.dist.is_finite() {

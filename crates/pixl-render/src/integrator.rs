@@ -251,6 +251,7 @@ impl Renderer {
                         p: path.hit.p,
                         n: path.bsdf.normal(),
                         two_sided: path.bsdf.transmits(),
+                        solid_angle: depth == 0,
                     });
                     path.pick = Some(pick);
                     if let Some(ls) = lights.sample(geom, &pick, up, u1, u2) {
@@ -331,7 +332,7 @@ impl Renderer {
                 let pick = path.pick.as_ref().filter(|_| !bs.delta);
                 let (beta, frac, depth) = (path.beta, path.frac, path.depth);
                 lights.area_hits(ray, t_next, |l, i, pdf, _| {
-                    let w = mis(bs.pdf, pick, |pick| lights.pick_pmf_at(pick, i) * pdf);
+                    let w = mis(bs.pdf, pick, |pick| lights.pick_pmf_at(pick, i) * lights.area_dir_pdf(pick, i, pdf));
                     add_path_light(s, &frac, beta * l * w, depth);
                 });
                 let Some(h2) = next else {

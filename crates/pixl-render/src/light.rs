@@ -153,6 +153,10 @@ pub struct ShadingPoint {
     pub n: V3,
     /// Light from both sides of `n` can scatter (a transmission lobe): no cosine bound.
     pub two_sided: bool,
+    /// Sample nearby rectangular area lights by solid angle ([`SphericalRect`]; costlier per
+    /// sample, worth it where the light is seen directly: the integrator asks it at the camera
+    /// vertex).
+    pub solid_angle: bool,
 }
 
 /// The light choice at one shading point: the per-point weights of the pick items, their sum,
@@ -251,6 +255,121 @@ impl EnvSampler {
         let u = 0.5 - (-d.z).atan2(d.x) / (2.0 * PI);
         let v = 0.5 - d.y.atan2(sin_t) / PI;
         self.dist.pdf(u, v) / (2.0 * PI * PI * sin_t)
+    }
+}
+
+/// The solid angle a rectangle subtends from a point, sampled uniformly: the area-preserving
+/// parametrisation of Ureña, Fajardo and King, "An Area-Preserving Parametrization for Spherical
+/// Rectangles" (EGSR 2013). In the rectangle's frame (`x`, `y` along its edges, `z` its normal
+/// turned away from the point, which sits at the origin), the rectangle spans `[x0, x1] × [y0, y1]`
+/// at height `z0 < 0`; `u` picks the `x` of a sample by solid angle (the area of the spherical
+/// rectangle left of it grows linearly in `u`), `v` its `y` uniformly in the sine of the
+/// elevation along that line, which is uniform in solid angle too.
+#[derive(Clone, Copy, Debug)]
+struct SphericalRect {
+    o: V3,
+    x: V3,
+    y: V3,
+    z: V3,
+    z0: f32,
+    x0: f32,
+    x1: f32,
+    y0: f32,
+    y1: f32,
+    b0: f32,
+    b1: f32,
+    k: f32,
+    /// Solid angle of the rectangle seen from `o`.
+    omega: f32,
+}
+
+impl SphericalRect {
+    /// Area lights sampled by solid angle: rectangles seen from `o` closer than four times their
+    /// half-diagonal (farther, sampling by area is about as good and cheaper), with a solid angle
+    /// f32 resolves (≥ 1e-3 sr). The same rule decides the pdf of light and BSDF samples.
+    #[inline(always)]
+    fn for_light(c: V3, ex: V3, ey: V3, disk: bool, o: V3) -> Option<SphericalRect> {
+        if disk {
+            return None;
+        }
+        let to = c - o;
+        if to.dot(to) > 16.0 * (ex.dot(ex) + ey.dot(ey)) {
+            return None;
+        }
+        SphericalRect::new(o, c - ex - ey, ex * 2.0, ey * 2.0).filter(|r| r.omega >= 1e-3)
+    }
+
+    /// The rectangle with corner `corner` and orthogonal full edges `ex`, `ey`, seen from `o`
+    /// (`None` when `o` is in its plane).
+    fn new(o: V3, corner: V3, ex: V3, ey: V3) -> Option<SphericalRect> {
+        let (lx, ly) = (ex.length(), ey.length());
+        if !(lx > 0.0 && ly > 0.0) {
+            return None;
+        }
+        let (x, y) = (ex / lx, ey / ly);
+        let mut z = x.cross(y);
+        let d = corner - o;
+        let mut z0 = d.dot(z);
+        if z0 > 0.0 {
+            z0 = -z0;
+            z = -z;
+        }
+        if !(z0 < 0.0) {
+            return None;
+        }
+        let (x0, y0) = (d.dot(x), d.dot(y));
+        let (x1, y1) = (x0 + lx, y0 + ly);
+        // Unit normals of the four planes through `o` and an edge, and the rectangle's interior
+        // angles at its corners: the solid angle is their sum minus 2π.
+        let n0 = V3::new(0.0, z0, -y0).normalize();
+        let n1 = V3::new(-z0, 0.0, x1).normalize();
+        let n2 = V3::new(0.0, -z0, y1).normalize();
+        let n3 = V3::new(z0, 0.0, -x0).normalize();
+        let angle = |a: V3, b: V3| (-a.dot(b)).clamp(-1.0, 1.0).acos();
+        let (g0, g1, g2, g3) = (angle(n0, n1), angle(n1, n2), angle(n2, n3), angle(n3, n0));
+        let k = 2.0 * PI - g2 - g3;
+        let omega = g0 + g1 - k;
+        if !(omega > 0.0) {
+            return None;
+        }
+        Some(SphericalRect {
+            o,
+            x,
+            y,
+            z,
+            z0,
+            x0,
+            x1,
+            y0,
+            y1,
+            b0: n0.z,
+            b1: n2.z,
+            k,
+            omega,
+        })
+    }
+
+    /// The point on the rectangle of the direction `(u, v)` maps to (uniform in solid angle).
+    #[inline(always)]
+    fn sample(&self, u: f32, v: f32) -> V3 {
+        // x: the spherical rectangle's area left of the line through x is u·Ω.
+        let au = u * self.omega + self.k;
+        let (sa, ca) = au.sin_cos();
+        let fu = (ca * self.b0 - self.b1) / sa;
+        let cu = (1.0 / (fu * fu + self.b0 * self.b0).sqrt()).copysign(fu).clamp(-1.0, 1.0);
+        let xu = (-(cu * self.z0) / (1.0 - cu * cu).max(1e-12).sqrt()).clamp(self.x0, self.x1);
+        // y: uniform in the sine of the elevation along that line.
+        let dist = (xu * xu + self.z0 * self.z0).sqrt();
+        let h0 = self.y0 / (dist * dist + self.y0 * self.y0).sqrt();
+        let h1 = self.y1 / (dist * dist + self.y1 * self.y1).sqrt();
+        let hv = h0 + v * (h1 - h0);
+        let hv2 = hv * hv;
+        let yv = if hv2 < 1.0 - 1e-6 {
+            (hv * dist / (1.0 - hv2).sqrt()).clamp(self.y0, self.y1)
+        } else {
+            self.y1
+        };
+        self.o + self.x * xu + self.y * yv + self.z * self.z0
     }
 }
 
@@ -914,22 +1033,36 @@ impl Lights {
                 area,
                 ..
             } => {
-                let (a, b) = if *disk {
-                    concentric_disk(u1, u2)
+                let rect = if sp.solid_angle {
+                    SphericalRect::for_light(*c, *ex, *ey, *disk, p)
                 } else {
-                    (2.0 * u1 - 1.0, 2.0 * u2 - 1.0)
+                    None
                 };
-                let q = *c + *ex * a + *ey * b;
+                let q = match &rect {
+                    Some(r) => r.sample(u1, u2),
+                    None => {
+                        let (a, b) = if *disk {
+                            concentric_disk(u1, u2)
+                        } else {
+                            (2.0 * u1 - 1.0, 2.0 * u2 - 1.0)
+                        };
+                        *c + *ex * a + *ey * b
+                    }
+                };
                 let (wi, dist) = towards(q);
                 let cos_l = -wi.dot(*n);
                 if !(cos_l > 0.0 && dist > 0.0) {
                     return None;
                 }
+                let pdf = match &rect {
+                    Some(r) => pick / r.omega,
+                    None => pick * dist * dist / (cos_l * area),
+                };
                 Some(LightSample {
                     li: *radiance,
                     wi,
                     dist,
-                    pdf: pick * dist * dist / (cos_l * area),
+                    pdf,
                     delta: false,
                 })
             }
@@ -1031,6 +1164,25 @@ impl Lights {
         }
     }
 
+    /// The direction pdf with which light `i` is sampled at the shading point of `pick`, given
+    /// `pdf` from [`Lights::area_hits`]: `1 / Ω` for a rectangle sampled by solid angle there,
+    /// else `pdf` itself.
+    #[inline(always)]
+    pub fn area_dir_pdf(&self, pick: &LightPick, i: usize, pdf: f32) -> f32 {
+        if let (
+            true,
+            Some(LightKind::Area {
+                c, ex, ey, disk: false, ..
+            }),
+        ) = (pick.sp.solid_angle, self.lights.get(i))
+        {
+            if let Some(r) = SphericalRect::for_light(*c, *ex, *ey, false, pick.sp.p) {
+                return 1.0 / r.omega;
+            }
+        }
+        pdf
+    }
+
     /// Light-sampling pdf (solid angle, with the pick probability of `pick`) of an emissive
     /// triangle hit at distance `t` with `|cos|` between the ray and its normal.
     pub fn tri_pdf(&self, geom: &Geometry, pick: &LightPick, prim: u32, t: f32, cos_l: f32) -> f32 {
@@ -1042,8 +1194,9 @@ impl Lights {
     }
 
     /// Area and sphere lights hit by `ray` before `tmax`: calls `f(radiance, light,
-    /// direction_pdf, t)` for each, the pdf without the pick probability (lights do not
-    /// occlude, so every one on the way counts).
+    /// direction_pdf, t)` for each, the pdf without the pick probability, for area lights the
+    /// pdf of sampling by area (see [`Lights::area_dir_pdf`]) (lights do not occlude, so every
+    /// one on the way counts).
     #[inline(always)]
     pub fn area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, usize, f32, f32)) {
         self.area_hits_if(ray, tmax, false, f)
@@ -1269,6 +1422,7 @@ mod tests {
             ),
             n: uniform_sphere(rng.f32(), rng.f32()),
             two_sided: rng.f32() < 0.25,
+            solid_angle: rng.f32() < 0.5,
         }
     }
 
@@ -1394,6 +1548,7 @@ mod tests {
             p: V3::ZERO,
             n,
             two_sided: false,
+            solid_angle: false,
         });
         assert!(lights.pick_pmf_at(&pick, 0) > 0.8, "the strong light gets most picks");
         let mut rng = Rng::new(11);
@@ -1441,7 +1596,9 @@ mod tests {
             }
             let mut found = Vec::new();
             let tmax = if ls.dist.is_finite() { ls.dist * 1.001 } else { f32::INFINITY };
-            lights.area_hits(&ray, tmax, |_, i, pdf, t| found.push((lights.pick_pmf_at(&pick, i) * pdf, t, 0)));
+            lights.area_hits(&ray, tmax, |_, i, pdf, t| {
+                found.push((lights.pick_pmf_at(&pick, i) * lights.area_dir_pdf(&pick, i, pdf), t, 0))
+            });
             if !ls.dist.is_finite() {
                 found.push((lights.env_pdf(&pick, ls.wi), f32::INFINITY, 1));
                 lights.sun_hits(ls.wi, |_, i, pdf| found.push((lights.pick_pmf_at(&pick, i) * pdf, f32::INFINITY, 2)));
@@ -1461,6 +1618,48 @@ mod tests {
             checked[*kind] += 1;
         }
         assert!(checked.iter().all(|&c| c > 100), "area/sphere, world, sun, triangle: {checked:?}");
+    }
+
+    /// Spherical-rectangle sampling: the solid angle is the area integral `∫ cos_l / d² dA`,
+    /// sampled points lie on the rectangle, and the mean of `cos θ / pdf` over samples is the
+    /// irradiance integral `∫ cos θ cos_l / d² dA` (uniform in solid angle), for points near
+    /// the rectangle, far off its axis and nearly in its plane.
+    #[test]
+    fn spherical_rectangle_samples_its_solid_angle_uniformly() {
+        let (c, ex, ey) = (V3::new(0.2, 1.0, -0.3), V3::new(0.6, 0.0, 0.0), V3::new(0.0, 0.3, 0.4));
+        let n = ex.cross(ey).normalize();
+        let recv = V3::new(0.1, 0.2, 1.0).normalize();
+        for o in [V3::new(0.0, 0.0, 1.0), V3::new(1.5, 1.2, 0.8), V3::new(-0.3, 0.9, -0.2), V3::new(0.2, 1.0, 0.05)] {
+            let r = SphericalRect::new(o, c - ex - ey, ex * 2.0, ey * 2.0).expect("in front");
+            let (mut omega, mut irr) = (0.0f64, 0.0f64);
+            let m = 400;
+            let da = (4.0 * ex.length() * ey.length()) as f64 / (m * m) as f64;
+            for i in 0..m {
+                for j in 0..m {
+                    let q = c + ex * (2.0 * (i as f32 + 0.5) / m as f32 - 1.0) + ey * (2.0 * (j as f32 + 0.5) / m as f32 - 1.0);
+                    let d = q - o;
+                    let d2 = d.dot(d) as f64;
+                    let w = d / d.length();
+                    let cos_l = w.dot(n).abs() as f64;
+                    omega += cos_l / d2 * da;
+                    irr += cos_l / d2 * da * w.dot(recv).abs() as f64;
+                }
+            }
+            assert!((r.omega as f64 - omega).abs() < 2e-3 * omega, "Ω {} vs {omega} at {o:?}", r.omega);
+            let mut rng = Rng::new(4);
+            let samples = 200_000;
+            let mut est = 0.0f64;
+            for _ in 0..samples {
+                let q = r.sample(rng.f32(), rng.f32());
+                let local = q - c;
+                let (a, b) = (local.dot(ex) / ex.dot(ex), local.dot(ey) / ey.dot(ey));
+                assert!(a.abs() <= 1.0 + 1e-4 && b.abs() <= 1.0 + 1e-4 && local.dot(n).abs() < 1e-4, "{q:?} off the rectangle");
+                let w = (q - o).normalize();
+                est += w.dot(recv).abs() as f64 * r.omega as f64;
+            }
+            let est = est / samples as f64;
+            assert!((est - irr).abs() < 5e-3 * irr, "irradiance {est} vs {irr} at {o:?}");
+        }
     }
 
     fn spot_image() -> Texture {
@@ -1489,6 +1688,7 @@ mod tests {
             p: V3::new(0.0, 0.01, 0.0),
             n: V3::new(0.0, 1.0, 0.0),
             two_sided: false,
+            solid_angle: true,
         };
         let pick = lights.pick_at(sp);
         assert_eq!(lights.item_weight(env, &sp), None);
