@@ -773,6 +773,17 @@ impl Lights {
         }
     }
 
+    /// Whether pick item `k` can reach `sp` at all (`item_weight` is `Some`), without the weight.
+    #[inline(always)]
+    fn item_reaches(&self, k: usize, sp: &ShadingPoint) -> bool {
+        match self.lights.get(k) {
+            Some(LightKind::Area { c, n, .. }) if k < self.analytic => (sp.p - *c).dot(*n) > 0.0,
+            Some(LightKind::Env) if k < self.analytic => self.env_peaked > 0.0,
+            Some(l @ LightKind::Spot { p, .. }) if k < self.analytic => l.spot_mask(sp.p - *p) > 0.0,
+            _ => true,
+        }
+    }
+
     /// The per-point weight of pick item `k` at `sp` (an estimate of its unoccluded irradiance
     /// there, see the module docs), or `None` when it cannot light the point at all.
     #[inline(always)]
@@ -868,6 +879,18 @@ impl Lights {
         }
     }
 
+    /// The one pick item that is not a constant world, when there is only one (then its
+    /// per-point weight does not matter, only whether it can reach the point).
+    #[inline(always)]
+    fn single_item(&self) -> Option<usize> {
+        let constant_env = self.env_index.filter(|_| !(self.env_peaked > 0.0));
+        match (self.items(), constant_env) {
+            (1, None) => Some(0),
+            (2, Some(e)) => Some(1 - e),
+            _ => None,
+        }
+    }
+
     /// The light choice at `sp` (computes the per-point weights).
     #[inline(always)]
     pub fn pick_at(&self, sp: ShadingPoint) -> LightPick {
@@ -877,6 +900,15 @@ impl Lights {
             base_total: 0.0,
             w: [-1.0; CACHED],
         };
+        if let Some(k) = self.single_item() {
+            // Picked whenever it can reach the point (any weight gives it probability 1).
+            if self.item_reaches(k, &sp) {
+                pick.w[k] = 1.0;
+                pick.total = 1.0;
+                pick.base_total = self.item_base(k);
+            }
+            return pick;
+        }
         for k in 0..self.items() {
             let w = self.item_weight(k, &sp);
             if let Some(w) = w {
@@ -1454,6 +1486,26 @@ mod tests {
         // The scene exercises lights that cannot reach a point and ones whose estimate is 0
         // (facing away) but that still get the floor.
         assert!(unreachable > 500 && floor_only > 500, "{unreachable} unreachable, {floor_only} floor only");
+    }
+
+    /// With one light (and a constant world, which is never light-sampled) the choice skips the
+    /// weights: the light is picked wherever it can reach the point, as the weights would say.
+    #[test]
+    fn a_single_light_is_picked_wherever_it_can_reach() {
+        let src = MANY.split("[[lights]]").next().expect("head").to_string()
+            + "[[lights]]\ntype = \"area\"\nposition = [1.0, 2.5, 1.0]\nlook_at = [0.0, 0.0, 0.0]\nsize = 1.0\npower = 150.0\n"
+            + "[world]\ncolor = [0.2, 0.25, 0.3]\n";
+        let (_, lights) = lights_of(&src.replace("emission_strength = 3.0", "emission_strength = 0.0"));
+        assert_eq!((lights.items(), lights.single_item()), (2, Some(0)));
+        let mut rng = Rng::new(2);
+        for _ in 0..1000 {
+            let sp = random_point(&mut rng);
+            let pick = lights.pick_at(sp);
+            let p = lights.pick_pmf_at(&pick, 0);
+            assert_eq!(p, if can_reach(&lights, 0, sp.p) { 1.0 } else { 0.0 });
+            assert_eq!(lights.item_weight(0, &sp).is_some(), lights.item_reaches(0, &sp));
+            assert_eq!(lights.pick_pmf_at(&pick, 1), 0.0);
+        }
     }
 
     #[test]
