@@ -11,12 +11,13 @@
 #   RUN_CYCLES    run_cycles.py of the shared tools [../shared/tools/run_cycles.py]
 #   NOISE_RMSE    the noise_rmse example [built here into $CARGO_TARGET_DIR or target/]
 #   OLD_NOISE_RMSE  optional: noise_rmse built from older code, measured as "ours-old" against
-#                 the same reference
+#                 the same reference (its `render` must take SEED REPEAT)
 #   DEMO_W, MESH_W  render widths of the demo (aspect 160:128) and mesh (square) scenes [256, 256]
 #   REF_SPP       spp of the references [1024]
 #   SPPS          spp of the measured renders ["1 4 16 64"]
 #   THREADS       threads for both renderers [2]
 #   SCENES        which scenes ["demo mesh"]
+#   REPEAT        renders per measurement, the median time kept (same image each time) [3]
 # References already in OUT_DIR are reused (delete them to remake); SUMMARY_ONLY=1 only remakes the
 # summary from OUT_DIR/results.tsv. Results: OUT_DIR/results.tsv
 # (scene renderer spp pass rmse seconds test_mean ref_mean under_half: the share of lit pixels
@@ -35,6 +36,7 @@ REF_SPP=${REF_SPP:-1024}
 SPPS=${SPPS:-"1 4 16 64"}
 THREADS=${THREADS:-2}
 SCENES=${SCENES:-"demo mesh"}
+REPEAT=${REPEAT:-3}
 export RAYON_NUM_THREADS=$THREADS
 target=${CARGO_TARGET_DIR:-$root/target}
 if [ -z "${NOISE_RMSE:-}" ]; then
@@ -61,18 +63,20 @@ for s in $SCENES; do
     fi
 done
 
-ours() { # scene spp exr seed [binary] -> prints seconds
-    "${5:-$NOISE_RMSE}" render "$out/$1/scene.toml" "$2" "$3" "$4" | awk '/^RENDER_S/ {print $2}'
+ours() { # scene spp exr seed repeat [binary] -> prints the median seconds
+    "${6:-$NOISE_RMSE}" render "$out/$1/scene.toml" "$2" "$3" "$4" "$5" | awk '/^RENDER_S/ {print $2}'
 }
-cycles() { # scene spp exr seed -> prints path_trace seconds
-    "$BPY_PYTHON" "$RUN_CYCLES" "$out/$1/scene.py" --out "$3" --spp "$2" --threads "$THREADS" --seed "$4" 2>&1 \
-        | sed -n 's/^CYCTIME //p' | python3 -c 'import json,sys; print(json.load(sys.stdin)["path_trace"])'
+cycles() { # scene spp exr seed repeat -> prints the median path_trace seconds
+    for _ in $(seq "$5"); do
+        "$BPY_PYTHON" "$RUN_CYCLES" "$out/$1/scene.py" --out "$3" --spp "$2" --threads "$THREADS" --seed "$4" 2>&1 \
+            | sed -n 's/^CYCTIME //p' | python3 -c 'import json,sys; print(json.load(sys.stdin)["path_trace"])'
+    done | sort -g | awk '{t[NR] = $1} END {print t[int((NR + 1) / 2)]}'
 }
 
 # References (seed 1; the measured renders use seed 0, so they share no samples with them).
 [ -n "${SUMMARY_ONLY:-}" ] || for s in $SCENES; do
-    [ -f "$out/$s/ref_ours.exr" ] || { t=$(ours "$s" "$REF_SPP" "$out/$s/ref_ours.exr" 1); echo "$s ours reference $REF_SPP spp: $t s"; }
-    [ -f "$out/$s/ref_cycles.exr" ] || { t=$(cycles "$s" "$REF_SPP" "$out/$s/ref_cycles.exr" 1); echo "$s Cycles reference $REF_SPP spp: $t s"; }
+    [ -f "$out/$s/ref_ours.exr" ] || { t=$(ours "$s" "$REF_SPP" "$out/$s/ref_ours.exr" 1 1); echo "$s ours reference $REF_SPP spp: $t s"; }
+    [ -f "$out/$s/ref_cycles.exr" ] || { t=$(cycles "$s" "$REF_SPP" "$out/$s/ref_cycles.exr" 1 1); echo "$s Cycles reference $REF_SPP spp: $t s"; }
     "$NOISE_RMSE" rmse "$out/$s/ref_cycles.exr" "$out/$s/ref_ours.exr" | sed "s/^RMSE /$s /" > "$out/$s/ref_means.txt"
 done
 
@@ -86,9 +90,9 @@ res=$out/results.tsv
         for r in $runs; do
             exr=$out/$s/$r-$spp.exr
             case $r in
-            ours) t=$(ours "$s" "$spp" "$exr" 0); ref=$out/$s/ref_ours.exr ;;
-            ours-old) t=$(ours "$s" "$spp" "$exr" 0 "$OLD_NOISE_RMSE"); ref=$out/$s/ref_ours.exr ;;
-            cycles) t=$(cycles "$s" "$spp" "$exr" 0); ref=$out/$s/ref_cycles.exr ;;
+            ours) t=$(ours "$s" "$spp" "$exr" 0 "$REPEAT"); ref=$out/$s/ref_ours.exr ;;
+            ours-old) t=$(ours "$s" "$spp" "$exr" 0 "$REPEAT" "$OLD_NOISE_RMSE"); ref=$out/$s/ref_ours.exr ;;
+            cycles) t=$(cycles "$s" "$spp" "$exr" 0 "$REPEAT"); ref=$out/$s/ref_cycles.exr ;;
             esac
             echo "$s $r $spp spp: $t s"
             "$NOISE_RMSE" rmse "$ref" "$exr" | awk -v s="$s" -v r="$r" -v n="$spp" -v t="$t" \

@@ -2,7 +2,7 @@
 //! `scripts/bench-noise-vs-cycles.sh`).
 //!
 //! ```text
-//! noise_rmse render SCENE.toml SPP OUT.exr [SEED]   # native render; prints "RENDER_S <seconds>"
+//! noise_rmse render SCENE.toml SPP OUT.exr [SEED [REPEAT]]  # prints "RENDER_S <median seconds>"
 //! noise_rmse rmse REF.exr TEST.exr                  # "RMSE <pass> <rmse> <test mean> <ref mean> <under half>"
 //! ```
 //!
@@ -26,19 +26,26 @@ fn channel<'a>(exr: &'a ExrChannels, pass: &passes::Pass, ch: &str) -> Option<&'
     })
 }
 
-fn render(scene: &str, spp: &str, out: &str, seed: Option<&String>) -> Result<(), Box<dyn std::error::Error>> {
+fn render(scene: &str, spp: &str, out: &str, rest: &[String]) -> Result<(), Box<dyn std::error::Error>> {
     let scene = pixl_render::Scene::load(Path::new(scene))?;
     let opts = pixl_render::RenderOptions {
         spp: spp.parse()?,
-        seed: seed.map(|s| s.parse()).transpose()?.unwrap_or(0),
+        seed: rest.first().map(|s| s.parse()).transpose()?.unwrap_or(0),
         ..Default::default()
     };
+    let repeat: usize = rest.get(1).map(|s| s.parse()).transpose()?.unwrap_or(1).max(1);
     let r = pixl_render::integrator::Renderer::new(&scene, &opts)?;
-    let t = std::time::Instant::now();
-    let film = r.render(&|_, _| {});
-    let secs = t.elapsed().as_secs_f64();
-    film.write_exr(Path::new(out))?;
-    println!("RENDER_S {secs:.4}");
+    // The same image each time (deterministic per seed); the median time is printed.
+    let mut times = Vec::new();
+    let mut film = None;
+    for _ in 0..repeat {
+        let t = std::time::Instant::now();
+        film = Some(r.render(&|_, _| {}));
+        times.push(t.elapsed().as_secs_f64());
+    }
+    times.sort_by(f64::total_cmp);
+    film.ok_or("no render")?.write_exr(Path::new(out))?;
+    println!("RENDER_S {:.4}", times[times.len() / 2]);
     Ok(())
 }
 
@@ -92,8 +99,8 @@ fn rmse(reference: &str, test: &str) -> Result<(), Box<dyn std::error::Error>> {
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     match args.as_slice() {
-        [cmd, scene, spp, out, rest @ ..] if cmd == "render" && rest.len() <= 1 => render(scene, spp, out, rest.first()),
+        [cmd, scene, spp, out, rest @ ..] if cmd == "render" && rest.len() <= 2 => render(scene, spp, out, rest),
         [cmd, reference, test] if cmd == "rmse" => rmse(reference, test),
-        _ => Err("usage: noise_rmse render SCENE.toml SPP OUT.exr [SEED] | noise_rmse rmse REF.exr TEST.exr".into()),
+        _ => Err("usage: noise_rmse render SCENE.toml SPP OUT.exr [SEED [REPEAT]] | noise_rmse rmse REF.exr TEST.exr".into()),
     }
 }
