@@ -82,7 +82,11 @@ fn rmse(reference: &str, test: &str) -> Result<(), Box<dyn std::error::Error>> {
         let n = n as f64;
         // Share of the pixels lit in the reference that get less than half of it.
         let lit = pr.iter().filter(|r| **r > 1e-6).count();
-        let dark = pr.iter().zip(&pt).filter(|(r, t)| **r > 1e-6 && **t < 0.5 * **r).count();
+        let dark = pr
+            .iter()
+            .zip(&pt)
+            .filter(|(r, t)| **r > 1e-6 && **t < 0.5 * **r)
+            .count();
         let half = if lit > 0 { dark as f64 / lit as f64 } else { 0.0 };
         println!(
             "RMSE {} {:.6e} {:.6} {:.6} {:.5}",
@@ -101,6 +105,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     match args.as_slice() {
         [cmd, scene, spp, out, rest @ ..] if cmd == "render" && rest.len() <= 2 => render(scene, spp, out, rest),
         [cmd, reference, test] if cmd == "rmse" => rmse(reference, test),
-        _ => Err("usage: noise_rmse render SCENE.toml SPP OUT.exr [SEED [REPEAT]] | noise_rmse rmse REF.exr TEST.exr".into()),
+        _ => Err(
+            "usage: noise_rmse render SCENE.toml SPP OUT.exr [SEED [REPEAT]] | noise_rmse rmse REF.exr TEST.exr".into(),
+        ),
     }
 }

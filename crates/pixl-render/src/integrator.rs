@@ -332,7 +332,9 @@ impl Renderer {
                 let pick = path.pick.as_ref().filter(|_| !bs.delta);
                 let (beta, frac, depth) = (path.beta, path.frac, path.depth);
                 lights.area_hits(ray, t_next, |l, i, pdf, _| {
-                    let w = mis(bs.pdf, pick, |pick| lights.pick_pmf_at(pick, i) * lights.area_dir_pdf(pick, i, pdf));
+                    let w = mis(bs.pdf, pick, |pick| {
+                        lights.pick_pmf_at(pick, i) * lights.area_dir_pdf(pick, i, pdf)
+                    });
                     add_path_light(s, &frac, beta * l * w, depth);
                 });
                 let Some(h2) = next else {

@@ -26,6 +26,8 @@
 //!   (hard edge for `blend = 0`), not renormalised to the cone.
 //! - Area: one-sided Lambertian, radiance `P·color / (π A)`, emitting along its direction; its
 //!   local X (`size`) is `normalize(d × Y)` (or +X when `d ∥ Y`), local Y is `(−d) × X`.
+//!   Sampled by area, except rectangles seen from a camera vertex closer than four half-diagonals,
+//!   sampled uniformly in the solid angle they subtend ([`SphericalRect`]).
 //! - Sun: irradiance `strength·color` on a surface facing it; with an angular diameter of at
 //!   least ~0.16° (Blender's default is 0.526°) a cone of uniform radiance `E / Ω` (`Ω = 2π(1 −
 //!   cos(angle/2))`, directions sampled uniformly in it), below that a delta light of
@@ -356,7 +358,9 @@ impl SphericalRect {
         let au = u * self.omega + self.k;
         let (sa, ca) = au.sin_cos();
         let fu = (ca * self.b0 - self.b1) / sa;
-        let cu = (1.0 / (fu * fu + self.b0 * self.b0).sqrt()).copysign(fu).clamp(-1.0, 1.0);
+        let cu = (1.0 / (fu * fu + self.b0 * self.b0).sqrt())
+            .copysign(fu)
+            .clamp(-1.0, 1.0);
         let xu = (-(cu * self.z0) / (1.0 - cu * cu).max(1e-12).sqrt()).clamp(self.x0, self.x1);
         // y: uniform in the sine of the elevation along that line.
         let dist = (xu * xu + self.z0 * self.z0).sqrt();
@@ -482,7 +486,11 @@ fn env_harmonics(tex: &Texture, rotation: f32, scale: f32) -> (f32, V3) {
     let k = scale as f64 / (4.0 * std::f64::consts::PI);
     (
         (a * k) as f32,
-        V3::new((3.0 * b[0] * k) as f32, (3.0 * b[1] * k) as f32, (3.0 * b[2] * k) as f32),
+        V3::new(
+            (3.0 * b[0] * k) as f32,
+            (3.0 * b[1] * k) as f32,
+            (3.0 * b[2] * k) as f32,
+        ),
     )
 }
 
@@ -761,7 +769,7 @@ impl Lights {
     /// Number of pick items: the analytic lights, then one for all emissive triangles.
     #[inline(always)]
     fn items(&self) -> usize {
-        self.analytic + (self.tri_dist.len() > 0) as usize
+        self.analytic + (self.lights.len() > self.analytic) as usize
     }
 
     #[inline(always)]
@@ -824,7 +832,13 @@ impl Lights {
                 Some(if w.is_finite() { w } else { 0.0 })
             }
             LightKind::Area {
-                c, ex, ey, n, disk, area, ..
+                c,
+                ex,
+                ey,
+                n,
+                disk,
+                area,
+                ..
             } => {
                 let to = sp.p - *c;
                 let h = to.dot(*n);
@@ -1447,11 +1461,7 @@ mod tests {
 
     fn random_point(rng: &mut Rng) -> ShadingPoint {
         ShadingPoint {
-            p: V3::new(
-                6.0 * rng.f32() - 3.0,
-                3.0 * rng.f32() - 0.2,
-                6.0 * rng.f32() - 3.0,
-            ),
+            p: V3::new(6.0 * rng.f32() - 3.0, 3.0 * rng.f32() - 0.2, 6.0 * rng.f32() - 3.0),
             n: uniform_sphere(rng.f32(), rng.f32()),
             two_sided: rng.f32() < 0.25,
             solid_angle: rng.f32() < 0.5,
@@ -1461,7 +1471,11 @@ mod tests {
     #[test]
     fn pick_probabilities_sum_to_one_and_are_positive_wherever_a_light_can_reach() {
         let (_, lights) = lights_of(MANY);
-        assert!(lights.analytic == 11 && lights.items() > CACHED, "{} analytic lights", lights.analytic);
+        assert!(
+            lights.analytic == 11 && lights.items() > CACHED,
+            "{} analytic lights",
+            lights.analytic
+        );
         assert!(lights.lights.len() > lights.analytic, "emissive triangles are lights");
         let mut rng = Rng::new(5);
         let (mut unreachable, mut floor_only) = (0, 0);
@@ -1473,7 +1487,12 @@ mod tests {
                 let pmf = lights.pick_pmf_at(&pick, i);
                 sum += pmf as f64;
                 let reach = can_reach(&lights, i, sp.p);
-                assert_eq!(pmf > 0.0, reach, "light {i} at {:?}: pmf {pmf}, reachable {reach}", sp.p);
+                assert_eq!(
+                    pmf > 0.0,
+                    reach,
+                    "light {i} at {:?}: pmf {pmf}, reachable {reach}",
+                    sp.p
+                );
                 unreachable += !reach as usize;
                 if i < lights.analytic && reach {
                     // Every reachable light keeps at least its share of the power floor.
@@ -1481,11 +1500,18 @@ mod tests {
                     floor_only += (lights.item_weight(i, &sp) == Some(0.0)) as usize;
                 }
             }
-            assert!((sum - 1.0).abs() < 1e-5, "pick probabilities at {:?} sum to {sum}", sp.p);
+            assert!(
+                (sum - 1.0).abs() < 1e-5,
+                "pick probabilities at {:?} sum to {sum}",
+                sp.p
+            );
         }
         // The scene exercises lights that cannot reach a point and ones whose estimate is 0
         // (facing away) but that still get the floor.
-        assert!(unreachable > 500 && floor_only > 500, "{unreachable} unreachable, {floor_only} floor only");
+        assert!(
+            unreachable > 500 && floor_only > 500,
+            "{unreachable} unreachable, {floor_only} floor only"
+        );
     }
 
     /// With one light (and a constant world, which is never light-sampled) the choice skips the
@@ -1627,7 +1653,10 @@ mod tests {
         let dir = tempfile::tempdir().expect("temp dir");
         let sky = dir.path().join("sky.exr");
         pixl_core::io::write_image(&sky, spot_image().image()).expect("sky image");
-        let src = MANY.replace("color = [0.2, 0.25, 0.3]", &format!("image = {:?}\nstrength = 0.2", sky));
+        let src = MANY.replace(
+            "color = [0.2, 0.25, 0.3]",
+            &format!("image = {:?}\nstrength = 0.2", sky),
+        );
         let (geom, lights) = lights_of(&src);
         assert!(lights.env_sampler.is_some() && lights.env_peaked > 0.0);
         let mut rng = Rng::new(3);
@@ -1642,20 +1671,32 @@ mod tests {
                 continue;
             }
             let ray = Ray::new(sp.p, ls.wi);
-            let clear = if ls.dist.is_finite() { ls.dist * (1.0 - 1e-3) } else { f32::INFINITY };
+            let clear = if ls.dist.is_finite() {
+                ls.dist * (1.0 - 1e-3)
+            } else {
+                f32::INFINITY
+            };
             if geom.occluded(&ray, 0.0, clear) {
                 continue;
             }
             let mut found = Vec::new();
-            let tmax = if ls.dist.is_finite() { ls.dist * 1.001 } else { f32::INFINITY };
+            let tmax = if ls.dist.is_finite() {
+                ls.dist * 1.001
+            } else {
+                f32::INFINITY
+            };
             lights.area_hits(&ray, tmax, |_, i, pdf, t| {
                 found.push((lights.pick_pmf_at(&pick, i) * lights.area_dir_pdf(&pick, i, pdf), t, 0))
             });
             if !ls.dist.is_finite() {
                 found.push((lights.env_pdf(&pick, ls.wi), f32::INFINITY, 1));
-                lights.sun_hits(ls.wi, |_, i, pdf| found.push((lights.pick_pmf_at(&pick, i) * pdf, f32::INFINITY, 2)));
+                lights.sun_hits(ls.wi, |_, i, pdf| {
+                    found.push((lights.pick_pmf_at(&pick, i) * pdf, f32::INFINITY, 2))
+                });
             }
-            let tri = geom.intersect(&ray, 0.0, tmax).filter(|h| geom.attrs[h.prim as usize].light != u32::MAX);
+            let tri = geom
+                .intersect(&ray, 0.0, tmax)
+                .filter(|h| geom.attrs[h.prim as usize].light != u32::MAX);
             if let Some(h) = tri {
                 found.push((lights.tri_pdf(&geom, &pick, h.prim, h.t, ls.wi.dot(h.ng).abs()), h.t, 3));
             }
@@ -1665,11 +1706,17 @@ mod tests {
                     && (pdf - ls.pdf).abs() <= 2e-3 * ls.pdf
             });
             let Some((_, _, kind)) = same else {
-                panic!("no BSDF-side pdf matches the light sample's {} at {:?}: {found:?}", ls.pdf, sp.p);
+                panic!(
+                    "no BSDF-side pdf matches the light sample's {} at {:?}: {found:?}",
+                    ls.pdf, sp.p
+                );
             };
             checked[*kind] += 1;
         }
-        assert!(checked.iter().all(|&c| c > 100), "area/sphere, world, sun, triangle: {checked:?}");
+        assert!(
+            checked.iter().all(|&c| c > 100),
+            "area/sphere, world, sun, triangle: {checked:?}"
+        );
     }
 
     /// Spherical-rectangle sampling: the solid angle is the area integral `∫ cos_l / d² dA`,
@@ -1681,14 +1728,21 @@ mod tests {
         let (c, ex, ey) = (V3::new(0.2, 1.0, -0.3), V3::new(0.6, 0.0, 0.0), V3::new(0.0, 0.3, 0.4));
         let n = ex.cross(ey).normalize();
         let recv = V3::new(0.1, 0.2, 1.0).normalize();
-        for o in [V3::new(0.0, 0.0, 1.0), V3::new(1.5, 1.2, 0.8), V3::new(-0.3, 0.9, -0.2), V3::new(0.2, 1.0, 0.05)] {
+        for o in [
+            V3::new(0.0, 0.0, 1.0),
+            V3::new(1.5, 1.2, 0.8),
+            V3::new(-0.3, 0.9, -0.2),
+            V3::new(0.2, 1.0, 0.05),
+        ] {
             let r = SphericalRect::new(o, c - ex - ey, ex * 2.0, ey * 2.0).expect("in front");
             let (mut omega, mut irr) = (0.0f64, 0.0f64);
             let m = 400;
             let da = (4.0 * ex.length() * ey.length()) as f64 / (m * m) as f64;
             for i in 0..m {
                 for j in 0..m {
-                    let q = c + ex * (2.0 * (i as f32 + 0.5) / m as f32 - 1.0) + ey * (2.0 * (j as f32 + 0.5) / m as f32 - 1.0);
+                    let q = c
+                        + ex * (2.0 * (i as f32 + 0.5) / m as f32 - 1.0)
+                        + ey * (2.0 * (j as f32 + 0.5) / m as f32 - 1.0);
                     let d = q - o;
                     let d2 = d.dot(d) as f64;
                     let w = d / d.length();
@@ -1697,7 +1751,11 @@ mod tests {
                     irr += cos_l / d2 * da * w.dot(recv).abs() as f64;
                 }
             }
-            assert!((r.omega as f64 - omega).abs() < 2e-3 * omega, "Ω {} vs {omega} at {o:?}", r.omega);
+            assert!(
+                (r.omega as f64 - omega).abs() < 2e-3 * omega,
+                "Ω {} vs {omega} at {o:?}",
+                r.omega
+            );
             let mut rng = Rng::new(4);
             let samples = 200_000;
             let mut est = 0.0f64;
@@ -1705,7 +1763,10 @@ mod tests {
                 let q = r.sample(rng.f32(), rng.f32());
                 let local = q - c;
                 let (a, b) = (local.dot(ex) / ex.dot(ex), local.dot(ey) / ey.dot(ey));
-                assert!(a.abs() <= 1.0 + 1e-4 && b.abs() <= 1.0 + 1e-4 && local.dot(n).abs() < 1e-4, "{q:?} off the rectangle");
+                assert!(
+                    a.abs() <= 1.0 + 1e-4 && b.abs() <= 1.0 + 1e-4 && local.dot(n).abs() < 1e-4,
+                    "{q:?} off the rectangle"
+                );
                 let w = (q - o).normalize();
                 est += w.dot(recv).abs() as f64 * r.omega as f64;
             }
@@ -1794,7 +1855,10 @@ mod tests {
         }
         assert!(agree as f64 > 0.999 * n as f64, "{agree} of {n} pdfs agree");
         // (Half of each cell next to the black band lies in the dark: a few samples are wasted.)
-        assert!(lit as f64 > 0.995 * n as f64, "{lit} of {n} sampled directions see light");
+        assert!(
+            lit as f64 > 0.995 * n as f64,
+            "{lit} of {n} sampled directions see light"
+        );
         for y in 0..16 {
             for x in 0..32 {
                 let p = s.dist.pdf((x as f32 + 0.5) / 32.0, (y as f32 + 0.5) / 16.0) as f64 / (32.0 * 16.0);

@@ -1151,7 +1151,10 @@ fn image_world_lights_a_plane_with_its_cosine_weighted_integral() {
     for c in 0..3 {
         let mean = (0..(w * w) as usize).map(|p| d.data[p * 3 + c] as f64).sum::<f64>() / (w * w) as f64;
         let want = e[c] / PI;
-        assert!((mean - want).abs() < 0.01 * want, "channel {c}: DiffDir {mean} vs {want}");
+        assert!(
+            (mean - want).abs() < 0.01 * want,
+            "channel {c}: DiffDir {mean} vs {want}"
+        );
         // Importance sampling keeps every pixel close (6 % rms when written).
         let rms = ((0..(w * w) as usize)
             .map(|p| (d.data[p * 3 + c] as f64 - want).powi(2))
@@ -1159,6 +1162,9 @@ fn image_world_lights_a_plane_with_its_cosine_weighted_integral() {
             / (w * w) as f64)
             .sqrt();
         // (Uniform sphere sampling finds the spot in 0.25 % of samples: ~250 % rms at 64 spp.)
-        assert!(rms < 0.1 * want, "channel {c}: pixels deviate by {rms} (rms) from {want}");
+        assert!(
+            rms < 0.1 * want,
+            "channel {c}: pixels deviate by {rms} (rms) from {want}"
+        );
     }
 }

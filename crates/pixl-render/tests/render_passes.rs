@@ -234,9 +234,17 @@ fn demo_scene_keeps_its_pass_means() {
     ] {
         let img = film.pass(pass).expect("pass");
         // R, G, B (Combined also has alpha).
-        let rgb: Vec<f64> = img.data.chunks_exact(img.channels).flat_map(|p| p[..3].iter().map(|v| *v as f64)).collect();
+        let rgb: Vec<f64> = img
+            .data
+            .chunks_exact(img.channels)
+            .flat_map(|p| p[..3].iter().map(|v| *v as f64))
+            .collect();
         let mean = rgb.iter().sum::<f64>() / rgb.len() as f64;
         let rel = (mean - cycles) / cycles;
-        assert!(rel.abs() < tol, "{pass}: mean {mean} vs Cycles {cycles} ({:+.2} %)", 100.0 * rel);
+        assert!(
+            rel.abs() < tol,
+            "{pass}: mean {mean} vs Cycles {cycles} ({:+.2} %)",
+            100.0 * rel
+        );
     }
 }
