@@ -17,6 +17,7 @@
 use pixl_core::Rng;
 use pixl_render::bvh::Ray;
 use pixl_render::integrator::Renderer;
+use pixl_render::light::ShadingPoint;
 use pixl_render::math::Frame;
 use pixl_render::sampler::Sampler;
 use pixl_render::sampling::cosine_hemisphere;
@@ -216,7 +217,13 @@ fn ray_throughput(r: &Renderer) {
             Ray::new(o, f.to_world(cosine_hemisphere(rng.f32(), rng.f32()))),
             f32::INFINITY,
         ));
-        let ls = r.lights.sample(g, h.p, rng.f32(), rng.f32(), rng.f32());
+        let pick = r.lights.pick_at(ShadingPoint {
+            p: h.p,
+            n,
+            two_sided: false,
+            solid_angle: false,
+        });
+        let ls = r.lights.sample(g, &pick, rng.f32(), rng.f32(), rng.f32());
         let (d, tmax) = match ls {
             Some(ls) if ls.dist.is_finite() => (ls.wi, ls.dist * (1.0 - 1e-3)),
             Some(ls) => (ls.wi, f32::INFINITY),
@@ -272,7 +279,13 @@ fn ray_throughput(r: &Renderer) {
             Ray::new(o, f.to_world(cosine_hemisphere(rng.f32(), rng.f32()))),
             f32::INFINITY,
         ));
-        if let Some(ls) = r.lights.sample(g, h.p, rng.f32(), rng.f32(), rng.f32()) {
+        let pick = r.lights.pick_at(ShadingPoint {
+            p: h.p,
+            n,
+            two_sided: false,
+            solid_angle: false,
+        });
+        if let Some(ls) = r.lights.sample(g, &pick, rng.f32(), rng.f32(), rng.f32()) {
             let tmax = if ls.dist.is_finite() {
                 ls.dist * (1.0 - 1e-3)
             } else {

@@ -19,10 +19,11 @@
 //! seed and sampler whatever the thread count, the scheduling or how rays are grouped (tested:
 //! lockstep = each sample traced alone).
 //!
-//! Per path vertex: one light is picked by power and sampled (NEE; MIS with the BSDF pdf for
-//! area, world and emissive-triangle lights, none for delta lights), then the BSDF is sampled
-//! and the emission the new ray finds (area lights on the way, the surface hit, or the world)
-//! is MIS-weighted. Russian roulette from the fourth vertex on (survival `min(max β, 0.95)`).
+//! Per path vertex: one light is picked by its estimated contribution at the vertex
+//! ([`crate::light::LightPick`]) and sampled (NEE; MIS with the BSDF pdf for area, sphere,
+//! world, wide-sun and emissive-triangle lights, none for delta lights), then the BSDF is
+//! sampled and the emission the new ray finds (area lights on the way, the surface hit, or the
+//! world) is MIS-weighted with the light pdf of the vertex it left, pick probability included. Russian roulette from the fourth vertex on (survival `min(max β, 0.95)`).
 //!
 //! Bounces follow Cycles' `max_bounces`: with `max_bounces = B`, light is gathered at up to
 //! `B + 1` surface vertices (0 = direct lighting only).
@@ -37,7 +38,7 @@ use crate::camera::CameraRays;
 use crate::error::{RenderError, Result};
 use crate::film::{Film, PixelSum};
 use crate::geometry::{Geometry, SurfaceHit};
-use crate::light::Lights;
+use crate::light::{LightPick, Lights, ShadingPoint};
 use crate::material::{Bsdf, BsdfEval, BsdfSample};
 use crate::math::V3;
 use crate::sampler::{PacketSampler, Sampler};
@@ -243,9 +244,17 @@ impl Renderer {
                     }
                     path.beta = path.beta / q;
                 }
+                path.pick = None;
                 if path.bsdf.has_smooth() && !lights.is_empty() {
                     let (up, [u1, u2]) = smp.light(j);
-                    if let Some(ls) = lights.sample(geom, path.hit.p, up, u1, u2) {
+                    let pick = lights.pick_at(ShadingPoint {
+                        p: path.hit.p,
+                        n: path.bsdf.normal(),
+                        two_sided: path.bsdf.transmits(),
+                        solid_angle: depth == 0,
+                    });
+                    path.pick = Some(pick);
+                    if let Some(ls) = lights.sample(geom, &pick, up, u1, u2) {
                         let e: BsdfEval = path.bsdf.eval(ls.wi);
                         if !e.total().is_zero() && ls.pdf > 0.0 {
                             let tmax = if ls.dist.is_finite() {
@@ -318,23 +327,24 @@ impl Renderer {
                 let s = &mut sums[j];
                 let next = next[j];
                 let t_next = next.map(|h| h.t).unwrap_or(f32::INFINITY);
-                let mis = |light_pdf: f32| {
-                    if bs.delta {
-                        1.0
-                    } else {
-                        power_heuristic(bs.pdf, light_pdf)
-                    }
-                };
+                // The light choice of the vertex the ray left (none: no light sampling there,
+                // so the BSDF sample takes all the weight).
+                let pick = path.pick.as_ref().filter(|_| !bs.delta);
                 let (beta, frac, depth) = (path.beta, path.frac, path.depth);
-                lights.area_hits(ray, t_next, |l, pdf, _| {
-                    add_path_light(s, &frac, beta * l * mis(pdf), depth);
+                lights.area_hits(ray, t_next, |l, i, pdf, _| {
+                    let w = mis(bs.pdf, pick, |pick| {
+                        lights.pick_pmf_at(pick, i) * lights.area_dir_pdf(pick, i, pdf)
+                    });
+                    add_path_light(s, &frac, beta * l * w, depth);
                 });
                 let Some(h2) = next else {
-                    if let Some((le, pdf)) = lights.env_hit(ray.d) {
-                        add_path_light(s, &frac, beta * le * mis(pdf), depth);
+                    if let Some(le) = lights.env_hit(ray.d) {
+                        let w = mis(bs.pdf, pick, |pick| lights.env_pdf(pick, ray.d));
+                        add_path_light(s, &frac, beta * le * w, depth);
                     }
-                    lights.sun_hits(ray.d, |l, pdf| {
-                        add_path_light(s, &frac, beta * l * mis(pdf), depth);
+                    lights.sun_hits(ray.d, |l, i, pdf| {
+                        let w = mis(bs.pdf, pick, |pick| lights.pick_pmf_at(pick, i) * pdf);
+                        add_path_light(s, &frac, beta * l * w, depth);
                     });
                     paths[j] = None;
                     continue;
@@ -342,8 +352,8 @@ impl Renderer {
                 let m2 = &geom.materials[geom.attrs[h2.prim as usize].material as usize];
                 if m2.emission.max_comp() > 0.0 {
                     let cos_l = ray.d.dot(h2.ng).abs();
-                    let pdf = lights.tri_pdf(geom, h2.prim, h2.t, cos_l);
-                    add_path_light(s, &frac, beta * m2.emission * mis(pdf), depth);
+                    let w = mis(bs.pdf, pick, |pick| lights.tri_pdf(geom, pick, h2.prim, h2.t, cos_l));
+                    add_path_light(s, &frac, beta * m2.emission * w, depth);
                 }
                 if depth >= max_b {
                     paths[j] = None;
@@ -371,12 +381,12 @@ impl Renderer {
     fn camera_vertex(&self, camera_ray: &Ray, first: Option<SurfaceHit>, s: &mut PixelSum) -> Option<Path> {
         let lights = &self.lights;
         let t_first = first.map(|h| h.t).unwrap_or(f32::INFINITY);
-        lights.camera_area_hits(camera_ray, t_first, |l, _, _| {
+        lights.camera_area_hits(camera_ray, t_first, |l, _, _, _| {
             s.emit += l;
             s.combined += l;
         });
         let Some(hit) = first else {
-            if let Some((le, _)) = lights.env_hit(camera_ray.d) {
+            if let Some(le) = lights.env_hit(camera_ray.d) {
                 s.env += le;
                 s.combined += le;
             }
@@ -398,6 +408,7 @@ impl Renderer {
         Some(Path {
             hit,
             bsdf,
+            pick: None,
             frac: [V3::ZERO; 3],
             beta: V3::ONE,
             depth: 0,
@@ -409,6 +420,8 @@ impl Renderer {
 struct Path {
     hit: SurfaceHit,
     bsdf: Bsdf,
+    /// The light choice at this vertex (set when it samples a light).
+    pick: Option<LightPick>,
     /// Per-channel share of each lobe in the path throughput after the first bounce.
     frac: [V3; 3],
     beta: V3,
@@ -502,6 +515,17 @@ impl Batch {
                 out[self.lane[i] as usize] = geom.intersect(&self.pack.ray(i), 0.0, self.pack.tmax(i));
             }
         }
+    }
+}
+
+/// MIS weight (power heuristic) of a BSDF sample of pdf `bsdf_pdf` that found a light, against
+/// light sampling with the light choice `pick` of the vertex it left (`light_pdf(pick)`); 1 with
+/// no light sampling to weigh against (no choice there, or a delta BSDF sample).
+#[inline(always)]
+fn mis(bsdf_pdf: f32, pick: Option<&LightPick>, light_pdf: impl FnOnce(&LightPick) -> f32) -> f32 {
+    match pick {
+        Some(pick) => power_heuristic(bsdf_pdf, light_pdf(pick)),
+        None => 1.0,
     }
 }
 

@@ -1,6 +1,18 @@
 //! Lights for the tracer, in Cycles' units (see [`crate::scene`]): point, spot, area
 //! (rectangle / disk), sun, the world, and emissive triangles. One light is picked per shading
-//! point in proportion to an estimate of its power; the sample returns the incident radiance
+//! point ([`LightPick`]) in proportion to an estimate of what it brings *there* — its
+//! unoccluded irradiance bounded over the light's extent: intensity or radiance × a bound of the
+//! emitter's and the receiver's cosines (and a spot's cone mask) / distance², capped at `π L`
+//! for area lights; a sun's irradiance × the receiver's cosine bound; the world's irradiance on
+//! the normal from its first spherical harmonics, times the share of its light above its mean
+//! radiance (what BSDF samples find poorly; a constant world is never light-sampled: BSDF
+//! samples find it as well as light samples would); the emissive triangles as one group (by power,
+//! over the distance to their bounds), inside which a triangle is picked by power. A share
+//! [`PICK_FLOOR`] of the probability follows the lights' scene-wide power among the lights that
+//! can reach the point at all (not behind a one-sided area light, not outside a spot's cone),
+//! so no light that can contribute has probability 0 (the estimator stays unbiased whatever the
+//! estimate). BSDF-sampled hits of a light are MIS-weighted with the pick probability of the
+//! vertex the ray left ([`Lights::pick_pmf_at`]). The sample returns the incident radiance
 //! (or, for delta lights, the radiance-equivalent `I/d²` or irradiance) and the pdf including
 //! the pick probability.
 //!
@@ -14,11 +26,17 @@
 //!   (hard edge for `blend = 0`), not renormalised to the cone.
 //! - Area: one-sided Lambertian, radiance `P·color / (π A)`, emitting along its direction; its
 //!   local X (`size`) is `normalize(d × Y)` (or +X when `d ∥ Y`), local Y is `(−d) × X`.
+//!   Sampled by area, except rectangles seen from a camera vertex closer than four half-diagonals,
+//!   sampled uniformly in the solid angle they subtend ([`SphericalRect`]).
 //! - Sun: irradiance `strength·color` on a surface facing it; with an angular diameter of at
 //!   least ~0.16° (Blender's default is 0.526°) a cone of uniform radiance `E / Ω` (`Ω = 2π(1 −
 //!   cos(angle/2))`, directions sampled uniformly in it), below that a delta light of
 //!   irradiance `E` (directions still spread over the cone).
-//! - World: radiance `strength·color` (× texel), sampled uniformly over the sphere.
+//! - World: radiance `strength·color` (× texel). An image world is sampled in proportion to
+//!   the mean luminance of each texel's cell of the bilinear lookup × `sin θ` (a piecewise-constant
+//!   2-D distribution over the equirectangular image, pdf per solid angle `p(u, v) / (2π² sin θ)`).
+//!   A constant world is found by BSDF samples only (its direction sampler, cosine-weighted about
+//!   the shading normal or uniform at points that transmit, is kept for completeness).
 //! - Emissive triangles: two-sided, radiance = the material's emission, sampled by area.
 //!
 //! Point and spot lights without a radius, and a sun below ~0.16°, are invisible to camera and BSDF
@@ -34,7 +52,9 @@ use crate::bvh::Ray;
 use crate::error::Result;
 use crate::geometry::Geometry;
 use crate::math::{Frame, V3};
-use crate::sampling::{concentric_disk, uniform_cone, uniform_sphere, uniform_triangle, Distribution1D};
+use crate::sampling::{
+    concentric_disk, cosine_hemisphere, uniform_cone, uniform_sphere, uniform_triangle, Distribution1D, Distribution2D,
+};
 use crate::scene::{AreaShape, Light, Scene};
 use crate::texture::Texture;
 use std::f32::consts::PI;
@@ -119,11 +139,278 @@ pub struct LightSample {
     pub delta: bool,
 }
 
+/// Share of a light's pick probability that follows the scene-wide power estimate (among the
+/// lights that can reach the shading point) rather than the per-point one.
+pub const PICK_FLOOR: f32 = 0.1;
+
+/// Pick items (analytic lights, then the group of emissive triangles) whose weights a
+/// [`LightPick`] keeps; further ones are recomputed when asked.
+const CACHED: usize = 8;
+
+/// What the light choice knows of a shading point.
+#[derive(Clone, Copy, Debug)]
+pub struct ShadingPoint {
+    pub p: V3,
+    /// Shading normal on the side light is scattered to (unit).
+    pub n: V3,
+    /// Light from both sides of `n` can scatter (a transmission lobe): no cosine bound.
+    pub two_sided: bool,
+    /// Sample nearby rectangular area lights by solid angle ([`SphericalRect`]; costlier per
+    /// sample, worth it where the light is seen directly: the integrator asks it at the camera
+    /// vertex).
+    pub solid_angle: bool,
+}
+
+/// The light choice at one shading point: the per-point weights of the pick items, their sum,
+/// and the summed power weights of the items that can reach the point.
+#[derive(Clone, Copy, Debug)]
+pub struct LightPick {
+    pub sp: ShadingPoint,
+    total: f32,
+    base_total: f32,
+    /// Weight per item (the first [`CACHED`]); negative: the item cannot reach the point.
+    w: [f32; CACHED],
+}
+
+/// The world image's sampling distribution (see the module docs).
+#[derive(Clone, Debug)]
+struct EnvSampler {
+    dist: Distribution2D,
+    /// `sin, cos` of minus the world's rotation about +Y (as [`Environment::eval`]).
+    sin_cos: (f32, f32),
+}
+
+impl EnvSampler {
+    /// Built from the luminance of `tex` (times nothing: the strength scales every cell alike).
+    fn new(tex: &Texture, rotation: f32) -> Option<EnvSampler> {
+        let (w, h) = (tex.width(), tex.height());
+        if w == 0 || h == 0 {
+            return None;
+        }
+        let lum: Vec<f32> = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| tex.texel(x as isize, y as isize).max(V3::ZERO).luminance())
+            .collect();
+        let at = |x: isize, y: isize| {
+            let (xi, yi) = (x.rem_euclid(w as isize) as usize, y.clamp(0, h as isize - 1) as usize);
+            lum[yi * w + xi]
+        };
+        // The mean of the bilinear lookup over cell (x, y) is the [1, 6, 1] / 8 filter of the
+        // texels in each axis (u wraps, v clamps, as `Texture::sample`): positive wherever the
+        // lookup is positive somewhere in the cell.
+        let k = [0.125f32, 0.75, 0.125];
+        let mut weights = vec![0f32; w * h];
+        for y in 0..h {
+            let sin_t = (PI * (y as f32 + 0.5) / h as f32).sin();
+            for x in 0..w {
+                let mut m = 0.0;
+                for (dy, ky) in k.iter().enumerate() {
+                    for (dx, kx) in k.iter().enumerate() {
+                        m += ky * kx * at(x as isize + dx as isize - 1, y as isize + dy as isize - 1);
+                    }
+                }
+                weights[y * w + x] = m * sin_t;
+            }
+        }
+        let dist = Distribution2D::new(&weights, w, h)?;
+        if dist.is_empty() {
+            return None;
+        }
+        Some(EnvSampler {
+            dist,
+            sin_cos: (-rotation).sin_cos(),
+        })
+    }
+
+    /// The direction (looking along it) of image coordinates `(u, v)` (`v = 0` the top row),
+    /// and `sin θ`.
+    fn direction(&self, u: f32, v: f32) -> (V3, f32) {
+        let theta = PI * v;
+        let phi = 2.0 * PI * (0.5 - u);
+        let (st, ct) = theta.sin_cos();
+        let (sp, cp) = phi.sin_cos();
+        let d = V3::new(st * cp, ct, -st * sp);
+        // Undo the rotation `Environment::eval` applies (its transpose).
+        let (s, c) = self.sin_cos;
+        (V3::new(c * d.x - s * d.z, d.y, s * d.x + c * d.z), st)
+    }
+
+    #[inline]
+    fn sample(&self, u1: f32, u2: f32) -> Option<(V3, f32)> {
+        let ([u, v], pdf) = self.dist.sample(u1, u2)?;
+        let (d, sin_t) = self.direction(u, v);
+        if !(sin_t > 0.0 && pdf > 0.0) {
+            return None;
+        }
+        Some((d, pdf / (2.0 * PI * PI * sin_t)))
+    }
+
+    /// Solid-angle density of [`EnvSampler::sample`] along `d` (unit).
+    #[inline]
+    fn pdf(&self, d: V3) -> f32 {
+        let (s, c) = self.sin_cos;
+        let d = V3::new(c * d.x + s * d.z, d.y, -s * d.x + c * d.z);
+        let sin_t = (d.x * d.x + d.z * d.z).sqrt();
+        if !(sin_t > 0.0) {
+            return 0.0;
+        }
+        let u = 0.5 - (-d.z).atan2(d.x) / (2.0 * PI);
+        let v = 0.5 - d.y.atan2(sin_t) / PI;
+        self.dist.pdf(u, v) / (2.0 * PI * PI * sin_t)
+    }
+}
+
+/// The solid angle a rectangle subtends from a point, sampled uniformly: the area-preserving
+/// parametrisation of Ureña, Fajardo and King, "An Area-Preserving Parametrization for Spherical
+/// Rectangles" (EGSR 2013). In the rectangle's frame (`x`, `y` along its edges, `z` its normal
+/// turned away from the point, which sits at the origin), the rectangle spans `[x0, x1] × [y0, y1]`
+/// at height `z0 < 0`; `u` picks the `x` of a sample by solid angle (the area of the spherical
+/// rectangle left of it grows linearly in `u`), `v` its `y` uniformly in the sine of the
+/// elevation along that line, which is uniform in solid angle too.
+#[derive(Clone, Copy, Debug)]
+struct SphericalRect {
+    o: V3,
+    x: V3,
+    y: V3,
+    z: V3,
+    z0: f32,
+    x0: f32,
+    x1: f32,
+    y0: f32,
+    y1: f32,
+    b0: f32,
+    b1: f32,
+    k: f32,
+    /// Solid angle of the rectangle seen from `o`.
+    omega: f32,
+}
+
+impl SphericalRect {
+    /// Area lights sampled by solid angle: rectangles seen from `o` closer than four times their
+    /// half-diagonal (farther, sampling by area is about as good and cheaper), with a solid angle
+    /// f32 resolves (≥ 1e-3 sr). The same rule decides the pdf of light and BSDF samples.
+    #[inline(always)]
+    fn for_light(c: V3, ex: V3, ey: V3, disk: bool, o: V3) -> Option<SphericalRect> {
+        if disk {
+            return None;
+        }
+        let to = c - o;
+        if to.dot(to) > 16.0 * (ex.dot(ex) + ey.dot(ey)) {
+            return None;
+        }
+        SphericalRect::new(o, c - ex - ey, ex * 2.0, ey * 2.0).filter(|r| r.omega >= 1e-3)
+    }
+
+    /// The rectangle with corner `corner` and orthogonal full edges `ex`, `ey`, seen from `o`
+    /// (`None` when `o` is in its plane).
+    fn new(o: V3, corner: V3, ex: V3, ey: V3) -> Option<SphericalRect> {
+        let (lx, ly) = (ex.length(), ey.length());
+        if !(lx > 0.0 && ly > 0.0) {
+            return None;
+        }
+        let (x, y) = (ex / lx, ey / ly);
+        let mut z = x.cross(y);
+        let d = corner - o;
+        let mut z0 = d.dot(z);
+        if z0 > 0.0 {
+            z0 = -z0;
+            z = -z;
+        }
+        if !(z0 < 0.0) {
+            return None;
+        }
+        let (x0, y0) = (d.dot(x), d.dot(y));
+        let (x1, y1) = (x0 + lx, y0 + ly);
+        // Unit normals of the four planes through `o` and an edge, and the rectangle's interior
+        // angles at its corners: the solid angle is their sum minus 2π.
+        let n0 = V3::new(0.0, z0, -y0).normalize();
+        let n1 = V3::new(-z0, 0.0, x1).normalize();
+        let n2 = V3::new(0.0, -z0, y1).normalize();
+        let n3 = V3::new(z0, 0.0, -x0).normalize();
+        let angle = |a: V3, b: V3| (-a.dot(b)).clamp(-1.0, 1.0).acos();
+        let (g0, g1, g2, g3) = (angle(n0, n1), angle(n1, n2), angle(n2, n3), angle(n3, n0));
+        let k = 2.0 * PI - g2 - g3;
+        let omega = g0 + g1 - k;
+        if !(omega > 0.0) {
+            return None;
+        }
+        Some(SphericalRect {
+            o,
+            x,
+            y,
+            z,
+            z0,
+            x0,
+            x1,
+            y0,
+            y1,
+            b0: n0.z,
+            b1: n2.z,
+            k,
+            omega,
+        })
+    }
+
+    /// The point on the rectangle of the direction `(u, v)` maps to (uniform in solid angle).
+    #[inline(always)]
+    fn sample(&self, u: f32, v: f32) -> V3 {
+        // x: the spherical rectangle's area left of the line through x is u·Ω.
+        let au = u * self.omega + self.k;
+        let (sa, ca) = au.sin_cos();
+        let fu = (ca * self.b0 - self.b1) / sa;
+        let cu = (1.0 / (fu * fu + self.b0 * self.b0).sqrt())
+            .copysign(fu)
+            .clamp(-1.0, 1.0);
+        let xu = (-(cu * self.z0) / (1.0 - cu * cu).max(1e-12).sqrt()).clamp(self.x0, self.x1);
+        // y: uniform in the sine of the elevation along that line.
+        let dist = (xu * xu + self.z0 * self.z0).sqrt();
+        let h0 = self.y0 / (dist * dist + self.y0 * self.y0).sqrt();
+        let h1 = self.y1 / (dist * dist + self.y1 * self.y1).sqrt();
+        let hv = h0 + v * (h1 - h0);
+        let hv2 = hv * hv;
+        let yv = if hv2 < 1.0 - 1e-6 {
+            (hv * dist / (1.0 - hv2).sqrt()).clamp(self.y0, self.y1)
+        } else {
+            self.y1
+        };
+        self.o + self.x * xu + self.y * yv + self.z * self.z0
+    }
+}
+
+/// `max cos` between `n` and the directions within angle `α` of a direction at cosine `cos_t`
+/// from `n` (`cos(max(0, θ − α))`, clamped at 0).
+#[inline(always)]
+fn cos_bound(cos_t: f32, sin_a: f32, cos_a: f32) -> f32 {
+    if cos_t >= cos_a {
+        return 1.0;
+    }
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    (cos_t * cos_a + sin_t * sin_a).max(0.0)
+}
+
 pub struct Lights {
     pub lights: Vec<LightKind>,
-    dist: Distribution1D,
+    /// Scene-wide power estimate of every light (the floor of the per-point choice).
+    base: Distribution1D,
+    /// Lights `0..analytic` are the scene's lights and the world; the rest emissive triangles.
+    analytic: usize,
+    /// Luminance per light (for the per-point weights): point / spot intensity, area radiance,
+    /// sun irradiance; unused for the world and triangles.
+    lum: Vec<f32>,
+    /// Emissive triangles: power distribution among them, their summed power weight, their
+    /// bounding sphere and total power (luminance).
+    tri_dist: Distribution1D,
+    tri_base: f32,
+    tri_bounds: (V3, f32),
+    tri_power: f32,
     pub env: Option<Environment>,
     env_index: Option<usize>,
+    env_sampler: Option<EnvSampler>,
+    /// The world's luminance to first order: mean radiance `a` and `b` of `L(ω) ≈ a + b·ω`.
+    env_sh: (f32, V3),
+    /// Share of the world's light above its mean radiance, `∫ max(0, L − L̄) / ∫ L` (0 for a
+    /// constant world): the part light sampling is needed for (see [`Lights::item_weight`]).
+    env_peaked: f32,
     area_indices: Vec<usize>,
     /// Suns with an angular size (hit by rays that escape).
     sun_indices: Vec<usize>,
@@ -174,6 +461,62 @@ impl SphereCone {
     }
 }
 
+/// The first-order spherical-harmonic fit `L(ω) ≈ a + b·ω` of an image world's luminance
+/// (times `scale`): `a = ∫L / 4π`, `b = 3 ∫L ω / 4π`, summed over the texels' solid angles.
+fn env_harmonics(tex: &Texture, rotation: f32, scale: f32) -> (f32, V3) {
+    let (w, h) = (tex.width(), tex.height());
+    let (s, c) = (-rotation).sin_cos();
+    let (mut a, mut b) = (0f64, [0f64; 3]);
+    for y in 0..h {
+        let theta = PI * (y as f32 + 0.5) / h as f32;
+        let (st, ct) = theta.sin_cos();
+        let d_omega = st as f64 * (PI as f64 / h as f64) * (2.0 * PI as f64 / w as f64);
+        for x in 0..w {
+            let phi = 2.0 * PI * (0.5 - (x as f32 + 0.5) / w as f32);
+            let (sp, cp) = phi.sin_cos();
+            let d = V3::new(st * cp, ct, -st * sp);
+            let d = V3::new(c * d.x - s * d.z, d.y, s * d.x + c * d.z);
+            let l = tex.texel(x as isize, y as isize).max(V3::ZERO).luminance() as f64 * d_omega;
+            a += l;
+            b[0] += l * d.x as f64;
+            b[1] += l * d.y as f64;
+            b[2] += l * d.z as f64;
+        }
+    }
+    let k = scale as f64 / (4.0 * std::f64::consts::PI);
+    (
+        (a * k) as f32,
+        V3::new(
+            (3.0 * b[0] * k) as f32,
+            (3.0 * b[1] * k) as f32,
+            (3.0 * b[2] * k) as f32,
+        ),
+    )
+}
+
+/// `∫ max(0, L − L̄) dω / ∫ L dω` of an image world's luminance `L` (`L̄` its mean over the
+/// sphere), by texel solid angles: 0 for a constant image, near 1 for a small bright sun.
+fn env_peak_share(tex: &Texture) -> f32 {
+    let (w, h) = (tex.width(), tex.height());
+    let mut texels = Vec::with_capacity(w * h);
+    let (mut sum, mut area) = (0f64, 0f64);
+    for y in 0..h {
+        let d_omega = (PI * (y as f32 + 0.5) / h as f32).sin() as f64;
+        for x in 0..w {
+            let l = tex.texel(x as isize, y as isize).max(V3::ZERO).luminance() as f64;
+            texels.push((l, d_omega));
+            sum += l * d_omega;
+            area += d_omega;
+        }
+    }
+    if !(sum > 0.0) {
+        return 0.0;
+    }
+    let mean = sum / area;
+    let above: f64 = texels.iter().map(|(l, d)| (l - mean).max(0.0) * d).sum();
+    (above / sum) as f32
+}
+
 impl LightKind {
     /// A spot light's cone mask for the direction `from_light` (light → shading point,
     /// any length); 1 for every other light.
@@ -217,6 +560,7 @@ impl Lights {
         let mut area_indices = Vec::new();
         let mut sun_indices = Vec::new();
         let mut sphere_indices = Vec::new();
+        let mut lum = Vec::new();
         for l in &scene.lights {
             let color = V3::from_arr(l.color().rgb());
             let dir = l
@@ -243,6 +587,7 @@ impl Lights {
                         camera: *visible_to_camera && *radius > 0.0,
                     });
                     power.push(p * color.luminance());
+                    lum.push(intensity.luminance());
                 }
                 Light::Spot {
                     position,
@@ -269,6 +614,7 @@ impl Lights {
                         camera: *visible_to_camera && *radius > 0.0,
                     });
                     power.push(p * color.luminance());
+                    lum.push(intensity.luminance());
                 }
                 Light::Area {
                     position,
@@ -293,6 +639,7 @@ impl Lights {
                         camera: *visible_to_camera,
                     });
                     power.push(p * color.luminance());
+                    lum.push((color * (*p / (PI * area))).luminance());
                 }
                 Light::Sun {
                     strength, angle_deg, ..
@@ -315,11 +662,15 @@ impl Lights {
                         omega,
                     });
                     power.push(strength * color.luminance() * PI * radius * radius);
+                    lum.push((color * *strength).luminance());
                 }
             }
         }
         let mut env = None;
         let mut env_index = None;
+        let mut env_sampler = None;
+        let mut env_sh = (0.0, V3::ZERO);
+        let mut env_peaked = 0.0;
         if let Some(w) = &scene.world {
             let image = match &w.image {
                 Some(p) => Some(Texture::load_color(&scene.resolve(p))?),
@@ -345,14 +696,26 @@ impl Lights {
                 image,
                 rotation: w.rotation_deg.to_radians(),
             };
-            let lum = (radiance * mean).luminance();
-            if lum > 0.0 {
+            let lum_mean = (radiance * mean).luminance();
+            if lum_mean > 0.0 {
                 env_index = Some(lights.len());
                 lights.push(LightKind::Env);
-                power.push(2.0 * PI * PI * radius * radius * lum);
+                power.push(2.0 * PI * PI * radius * radius * lum_mean);
+                lum.push(lum_mean);
+                match &e.image {
+                    Some(tex) => {
+                        env_sampler = EnvSampler::new(tex, e.rotation);
+                        env_sh = env_harmonics(tex, e.rotation, radiance.luminance());
+                        env_peaked = env_peak_share(tex);
+                    }
+                    None => env_sh = (lum_mean, V3::ZERO),
+                }
             }
             env = Some(e);
         }
+        let analytic = lights.len();
+        let mut tri_power = Vec::new();
+        let (mut lo, mut hi) = (V3::splat(f32::INFINITY), V3::splat(f32::NEG_INFINITY));
         for (prim, a) in geom.attrs.iter_mut().enumerate() {
             let em = geom.materials[a.material as usize].emission;
             if em.max_comp() > 0.0 {
@@ -361,15 +724,38 @@ impl Lights {
                     prim: prim as u32,
                     radiance: em,
                 });
-                power.push(2.0 * PI * a.area * em.luminance());
+                let tri = &geom.tris[prim];
+                for q in [tri.point(0.0, 0.0), tri.point(1.0, 0.0), tri.point(0.0, 1.0)] {
+                    lo = lo.min(q);
+                    hi = hi.max(q);
+                }
+                let w = 2.0 * PI * a.area * em.luminance();
+                power.push(w);
+                tri_power.push(w);
             }
         }
-        let dist = Distribution1D::new(&power);
+        let base = Distribution1D::new(&power);
+        let tri_dist = Distribution1D::new(&tri_power);
+        let tri_base = (analytic..lights.len()).map(|i| base.pmf(i)).sum();
+        let tri_bounds = if tri_power.is_empty() {
+            (V3::ZERO, 0.0)
+        } else {
+            ((lo + hi) * 0.5, (hi - lo).length() * 0.5)
+        };
         Ok(Lights {
             lights,
-            dist,
+            base,
+            analytic,
+            lum,
+            tri_base,
+            tri_bounds,
+            tri_power: tri_dist.total,
+            tri_dist,
             env,
             env_index,
+            env_sampler,
+            env_sh,
+            env_peaked,
             area_indices,
             sun_indices,
             sphere_indices,
@@ -377,25 +763,256 @@ impl Lights {
     }
 
     pub fn is_empty(&self) -> bool {
-        self.dist.is_empty()
+        self.base.is_empty()
     }
 
-    /// Probability of picking light `i`.
-    pub fn pick_pmf(&self, i: usize) -> f32 {
-        self.dist.pmf(i)
-    }
-
-    /// Samples one light for the shading point `p`.
+    /// Number of pick items: the analytic lights, then one for all emissive triangles.
     #[inline(always)]
-    pub fn sample(&self, geom: &Geometry, p: V3, u_pick: f32, u1: f32, u2: f32) -> Option<LightSample> {
-        if self.dist.is_empty() {
+    fn items(&self) -> usize {
+        self.analytic + (self.lights.len() > self.analytic) as usize
+    }
+
+    #[inline(always)]
+    fn item_base(&self, k: usize) -> f32 {
+        if k < self.analytic {
+            self.base.pmf(k)
+        } else {
+            self.tri_base
+        }
+    }
+
+    /// Whether pick item `k` can reach `sp` at all (`item_weight` is `Some`), without the weight.
+    #[inline(always)]
+    fn item_reaches(&self, k: usize, sp: &ShadingPoint) -> bool {
+        match self.lights.get(k) {
+            Some(LightKind::Area { c, n, .. }) if k < self.analytic => (sp.p - *c).dot(*n) > 0.0,
+            Some(LightKind::Env) if k < self.analytic => self.env_peaked > 0.0,
+            Some(l @ LightKind::Spot { p, .. }) if k < self.analytic => l.spot_mask(sp.p - *p) > 0.0,
+            _ => true,
+        }
+    }
+
+    /// The per-point weight of pick item `k` at `sp` (an estimate of its unoccluded irradiance
+    /// there, see the module docs), or `None` when it cannot light the point at all.
+    #[inline(always)]
+    fn item_weight(&self, k: usize, sp: &ShadingPoint) -> Option<f32> {
+        let facing = |cos_t: f32, sin_a: f32, cos_a: f32| {
+            if sp.two_sided {
+                cos_bound(cos_t.abs(), sin_a, cos_a)
+            } else {
+                cos_bound(cos_t, sin_a, cos_a)
+            }
+        };
+        if k >= self.analytic {
+            let (c, r) = self.tri_bounds;
+            let d2 = (c - sp.p).dot(c - sp.p).max(r * r);
+            return Some(self.tri_power / (2.0 * PI * d2.max(1e-12)));
+        }
+        let lum = self.lum[k];
+        match &self.lights[k] {
+            LightKind::Point { p, radius, .. } | LightKind::Spot { p, radius, .. } => {
+                let to = *p - sp.p;
+                let d2 = to.dot(to);
+                let mask = self.lights[k].spot_mask(-to);
+                if !(mask > 0.0) {
+                    return None;
+                }
+                let d = d2.sqrt();
+                let r = *radius;
+                let cos_t = sp.n.dot(to) / d;
+                let f = if r > 0.0 && d > r {
+                    let sin_a = r / d;
+                    facing(cos_t, sin_a, (1.0 - sin_a * sin_a).sqrt())
+                } else if r > 0.0 {
+                    1.0
+                } else {
+                    facing(cos_t, 0.0, 1.0)
+                };
+                let w = lum * mask * f / d2.max(r * r);
+                Some(if w.is_finite() { w } else { 0.0 })
+            }
+            LightKind::Area {
+                c,
+                ex,
+                ey,
+                n,
+                disk,
+                area,
+                ..
+            } => {
+                let to = sp.p - *c;
+                let h = to.dot(*n);
+                if !(h > 0.0) {
+                    return None; // behind the one-sided emitter (or in its plane)
+                }
+                let d2 = to.dot(to);
+                let d = d2.sqrt();
+                let r2 = if *disk {
+                    ex.dot(*ex).max(ey.dot(*ey))
+                } else {
+                    ex.dot(*ex) + ey.dot(*ey)
+                };
+                let (sin_a, cos_a) = if d2 > r2 {
+                    let s2 = r2 / d2;
+                    (s2.sqrt(), (1.0 - s2).sqrt())
+                } else {
+                    (1.0, 0.0)
+                };
+                let emit = cos_bound(h / d, sin_a, cos_a);
+                let recv = facing(-sp.n.dot(to) / d, sin_a, cos_a);
+                Some(lum * (area * emit / d2).min(PI) * recv)
+            }
+            LightKind::Sun { dir, cos_max, .. } => {
+                let cos_a = *cos_max;
+                let sin_a = (1.0 - cos_a * cos_a).max(0.0).sqrt();
+                Some(lum * facing(-sp.n.dot(*dir), sin_a, cos_a))
+            }
+            LightKind::Env => {
+                // Only the world's light above its mean is worth light samples: BSDF samples
+                // (MIS-weighted) already find a constant sky as well as light sampling could
+                // (for a Lambertian surface and a cosine-sampled sky, with the same density),
+                // so a constant world is left to them entirely (every non-delta lobe samples
+                // all the directions it scatters to, so nothing is missed) and its picks go to
+                // the lights that need them. (A floor share of picks for it cost the depth-mesh
+                // bench scene most of its Diffuse Direct noise: 0.8 % of samples without the key
+                // light.)
+                if !(self.env_peaked > 0.0) {
+                    return None;
+                }
+                let (a, b) = self.env_sh;
+                let e = if sp.two_sided {
+                    2.0 * PI * a
+                } else {
+                    // ∫ (a + b·ω) cos over the hemisphere = π a + (2π/3) b·n; the first-order
+                    // fit can dip below the true (non-negative) value, hence the clamp.
+                    (PI * a + (2.0 * PI / 3.0) * b.dot(sp.n)).max(0.1 * PI * a)
+                };
+                Some(e * self.env_peaked)
+            }
+            LightKind::Tri { .. } => Some(0.0),
+        }
+    }
+
+    /// The one pick item that is not a constant world, when there is only one (then its
+    /// per-point weight does not matter, only whether it can reach the point).
+    #[inline(always)]
+    fn single_item(&self) -> Option<usize> {
+        let constant_env = self.env_index.filter(|_| !(self.env_peaked > 0.0));
+        match (self.items(), constant_env) {
+            (1, None) => Some(0),
+            (2, Some(e)) => Some(1 - e),
+            _ => None,
+        }
+    }
+
+    /// The light choice at `sp` (computes the per-point weights).
+    #[inline(always)]
+    pub fn pick_at(&self, sp: ShadingPoint) -> LightPick {
+        let mut pick = LightPick {
+            sp,
+            total: 0.0,
+            base_total: 0.0,
+            w: [-1.0; CACHED],
+        };
+        if let Some(k) = self.single_item() {
+            // Picked whenever it can reach the point (any weight gives it probability 1).
+            if self.item_reaches(k, &sp) {
+                pick.w[k] = 1.0;
+                pick.total = 1.0;
+                pick.base_total = self.item_base(k);
+            }
+            return pick;
+        }
+        for k in 0..self.items() {
+            let w = self.item_weight(k, &sp);
+            if let Some(w) = w {
+                pick.total += w;
+                pick.base_total += self.item_base(k);
+            }
+            if k < CACHED {
+                pick.w[k] = w.unwrap_or(-1.0);
+            }
+        }
+        pick
+    }
+
+    /// Probability that `pick` chooses item `k`.
+    #[inline(always)]
+    fn item_pmf(&self, pick: &LightPick, k: usize) -> f32 {
+        let w = if k < CACHED {
+            pick.w[k]
+        } else {
+            self.item_weight(k, &pick.sp).unwrap_or(-1.0)
+        };
+        if w < 0.0 {
+            return 0.0;
+        }
+        let base = if pick.base_total > 0.0 {
+            self.item_base(k) / pick.base_total
+        } else {
+            0.0
+        };
+        match (pick.total > 0.0, pick.base_total > 0.0) {
+            (true, true) => (1.0 - PICK_FLOOR) * (w / pick.total) + PICK_FLOOR * base,
+            (true, false) => w / pick.total,
+            (false, _) => base,
+        }
+    }
+
+    /// Probability that the light choice `pick` picks light `i`.
+    #[inline(always)]
+    pub fn pick_pmf_at(&self, pick: &LightPick, i: usize) -> f32 {
+        if i < self.analytic {
+            self.item_pmf(pick, i)
+        } else {
+            self.item_pmf(pick, self.analytic) * self.tri_dist.pmf(i - self.analytic)
+        }
+    }
+
+    /// Light `i` and its pick probability, chosen by `pick` with the uniform number `u`.
+    #[inline(always)]
+    fn choose(&self, pick: &LightPick, u: f32) -> Option<(usize, f32)> {
+        let mut acc = 0.0;
+        let mut chosen = None;
+        for k in 0..self.items() {
+            let p = self.item_pmf(pick, k);
+            if p > 0.0 {
+                chosen = Some((k, p, acc));
+                acc += p;
+                if u < acc {
+                    break;
+                }
+            }
+        }
+        let (k, p, lo) = chosen?;
+        if k < self.analytic {
+            return Some((k, p));
+        }
+        let (t, _) = self.tri_dist.sample(((u - lo) / p).clamp(0.0, 0.999_999_94));
+        Some((self.analytic + t, p * self.tri_dist.pmf(t)))
+    }
+
+    /// Solid-angle density with which [`Lights::sample`] at `sp` samples the world along `d`
+    /// (before the pick probability).
+    #[inline(always)]
+    fn env_dir_pdf(&self, sp: &ShadingPoint, d: V3) -> f32 {
+        match &self.env_sampler {
+            Some(s) => s.pdf(d),
+            None if sp.two_sided => 1.0 / (4.0 * PI),
+            None => (d.dot(sp.n) / PI).max(0.0),
+        }
+    }
+
+    /// Samples one light for the shading point of `pick`.
+    #[inline(always)]
+    pub fn sample(&self, geom: &Geometry, pick: &LightPick, u_pick: f32, u1: f32, u2: f32) -> Option<LightSample> {
+        let (i, pick_p) = self.choose(pick, u_pick)?;
+        if !(pick_p > 0.0) {
             return None;
         }
-        let (i, _) = self.dist.sample(u_pick);
-        let pick = self.dist.pmf(i);
-        if pick <= 0.0 {
-            return None;
-        }
+        let sp = pick.sp;
+        let p = sp.p;
+        let pick = pick_p;
         let towards = |q: V3| {
             let d = q - p;
             let dist = d.length();
@@ -462,22 +1079,36 @@ impl Lights {
                 area,
                 ..
             } => {
-                let (a, b) = if *disk {
-                    concentric_disk(u1, u2)
+                let rect = if sp.solid_angle {
+                    SphericalRect::for_light(*c, *ex, *ey, *disk, p)
                 } else {
-                    (2.0 * u1 - 1.0, 2.0 * u2 - 1.0)
+                    None
                 };
-                let q = *c + *ex * a + *ey * b;
+                let q = match &rect {
+                    Some(r) => r.sample(u1, u2),
+                    None => {
+                        let (a, b) = if *disk {
+                            concentric_disk(u1, u2)
+                        } else {
+                            (2.0 * u1 - 1.0, 2.0 * u2 - 1.0)
+                        };
+                        *c + *ex * a + *ey * b
+                    }
+                };
                 let (wi, dist) = towards(q);
                 let cos_l = -wi.dot(*n);
                 if !(cos_l > 0.0 && dist > 0.0) {
                     return None;
                 }
+                let pdf = match &rect {
+                    Some(r) => pick / r.omega,
+                    None => pick * dist * dist / (cos_l * area),
+                };
                 Some(LightSample {
                     li: *radiance,
                     wi,
                     dist,
-                    pdf: pick * dist * dist / (cos_l * area),
+                    pdf,
                     delta: false,
                 })
             }
@@ -504,12 +1135,22 @@ impl Lights {
             }
             LightKind::Env => {
                 let env = self.env.as_ref()?;
-                let wi = uniform_sphere(u1, u2);
+                let (wi, pdf) = match &self.env_sampler {
+                    Some(s) => s.sample(u1, u2)?,
+                    None if sp.two_sided => (uniform_sphere(u1, u2), 1.0 / (4.0 * PI)),
+                    None => {
+                        let wi = Frame::new(sp.n).to_world(cosine_hemisphere(u1, u2));
+                        (wi, wi.dot(sp.n) / PI)
+                    }
+                };
+                if !(pdf > 0.0) {
+                    return None;
+                }
                 Some(LightSample {
                     li: env.eval(wi),
                     wi,
                     dist: f32::INFINITY,
-                    pdf: pick / (4.0 * PI),
+                    pdf: pick * pdf,
                     delta: false,
                 })
             }
@@ -534,18 +1175,26 @@ impl Lights {
         }
     }
 
-    /// The world's radiance along `d` and the light-sampling pdf of that direction.
+    /// The world's radiance along `d`.
     #[inline]
-    pub fn env_hit(&self, d: V3) -> Option<(V3, f32)> {
-        let env = self.env.as_ref()?;
-        let pdf = self.env_index.map(|i| self.dist.pmf(i) / (4.0 * PI)).unwrap_or(0.0);
-        Some((env.eval(d), pdf))
+    pub fn env_hit(&self, d: V3) -> Option<V3> {
+        Some(self.env.as_ref()?.eval(d))
     }
 
-    /// Suns with a cone (see the module docs) a ray escaping the scene along `d` sees: calls `f(radiance,
-    /// light_pdf)` for each.
+    /// The light-sampling pdf (solid angle, with the pick probability) of the world along `d`
+    /// at the shading point of `pick`.
+    #[inline]
+    pub fn env_pdf(&self, pick: &LightPick, d: V3) -> f32 {
+        match self.env_index {
+            Some(i) => self.pick_pmf_at(pick, i) * self.env_dir_pdf(&pick.sp, d),
+            None => 0.0,
+        }
+    }
+
+    /// Suns with a cone (see the module docs) a ray escaping the scene along `d` sees: calls
+    /// `f(radiance, light, direction_pdf)` for each (the pdf without the pick probability).
     #[inline(always)]
-    pub fn sun_hits(&self, d: V3, mut f: impl FnMut(V3, f32)) {
+    pub fn sun_hits(&self, d: V3, mut f: impl FnMut(V3, usize, f32)) {
         for &i in &self.sun_indices {
             if let LightKind::Sun {
                 dir,
@@ -555,38 +1204,59 @@ impl Lights {
             } = &self.lights[i]
             {
                 if -d.dot(*dir) >= *cos_max {
-                    f(*irradiance / *omega, self.dist.pmf(i) / *omega);
+                    f(*irradiance / *omega, i, 1.0 / *omega);
                 }
             }
         }
     }
 
-    /// Light-sampling pdf (solid angle) of an emissive triangle hit at distance `t` with
-    /// `|cos|` between the ray and its normal.
-    pub fn tri_pdf(&self, geom: &Geometry, prim: u32, t: f32, cos_l: f32) -> f32 {
+    /// The direction pdf with which light `i` is sampled at the shading point of `pick`, given
+    /// `pdf` from [`Lights::area_hits`]: `1 / Ω` for a rectangle sampled by solid angle there,
+    /// else `pdf` itself.
+    #[inline(always)]
+    pub fn area_dir_pdf(&self, pick: &LightPick, i: usize, pdf: f32) -> f32 {
+        if let (
+            true,
+            Some(LightKind::Area {
+                c, ex, ey, disk: false, ..
+            }),
+        ) = (pick.sp.solid_angle, self.lights.get(i))
+        {
+            if let Some(r) = SphericalRect::for_light(*c, *ex, *ey, false, pick.sp.p) {
+                return 1.0 / r.omega;
+            }
+        }
+        pdf
+    }
+
+    /// Light-sampling pdf (solid angle, with the pick probability of `pick`) of an emissive
+    /// triangle hit at distance `t` with `|cos|` between the ray and its normal.
+    pub fn tri_pdf(&self, geom: &Geometry, pick: &LightPick, prim: u32, t: f32, cos_l: f32) -> f32 {
         let a = &geom.attrs[prim as usize];
         if a.light == u32::MAX || cos_l <= 0.0 {
             return 0.0;
         }
-        self.dist.pmf(a.light as usize) * t * t / (cos_l * a.area)
+        self.pick_pmf_at(pick, a.light as usize) * t * t / (cos_l * a.area)
     }
 
-    /// Area and sphere lights hit by `ray` before `tmax`: calls `f(radiance, light_pdf, t)`
-    /// for each (lights do not occlude, so every one on the way counts).
+    /// Area and sphere lights hit by `ray` before `tmax`: calls `f(radiance, light,
+    /// direction_pdf, t)` for each, the pdf without the pick probability, for area lights the
+    /// pdf of sampling by area (see [`Lights::area_dir_pdf`]) (lights do not occlude, so every
+    /// one on the way counts).
     #[inline(always)]
-    pub fn area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
+    pub fn area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, usize, f32, f32)) {
         self.area_hits_if(ray, tmax, false, f)
     }
 
     /// [`Lights::area_hits`] for a camera ray: only the area and sphere lights visible to the
-    /// camera (the light pdf passed to `f` is then meaningless: no MIS at the camera).
+    /// camera (the pdf passed to `f` is then meaningless: no MIS at the camera).
     #[inline(always)]
-    pub fn camera_area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, f32, f32)) {
+    pub fn camera_area_hits(&self, ray: &Ray, tmax: f32, f: impl FnMut(V3, usize, f32, f32)) {
         self.area_hits_if(ray, tmax, true, f)
     }
 
     #[inline(always)]
-    fn area_hits_if(&self, ray: &Ray, tmax: f32, camera_ray: bool, mut f: impl FnMut(V3, f32, f32)) {
+    fn area_hits_if(&self, ray: &Ray, tmax: f32, camera_ray: bool, mut f: impl FnMut(V3, usize, f32, f32)) {
         for &i in &self.area_indices {
             if let LightKind::Area {
                 c,
@@ -619,8 +1289,7 @@ impl Lights {
                     a.abs() <= 1.0 && b.abs() <= 1.0
                 };
                 if inside {
-                    let pdf = self.dist.pmf(i) * t * t / (-denom * area);
-                    f(*radiance, pdf, t);
+                    f(*radiance, i, t * t / (-denom * area), t);
                 }
             }
         }
@@ -662,14 +1331,563 @@ impl Lights {
             let radiance = *intensity / (PI * radius * radius) * mask;
             if camera_ray {
                 // The camera sees the sphere wherever its rays hit it (no MIS to match).
-                f(radiance, 0.0, t);
+                f(radiance, i, 0.0, t);
                 continue;
             }
             // Only where light sampling samples the sphere as a cone (else it is a point).
             let Some(cone) = SphereCone::new(*c, *radius, ray.o) else {
                 continue;
             };
-            f(radiance, self.dist.pmf(i) / cone.omega, t);
+            f(radiance, i, 1.0 / cone.omega, t);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use pixl_core::{Image, Rng};
+
+    fn lights_of(src: &str) -> (Geometry, Lights) {
+        let scene = Scene::from_toml_str(src).expect("scene");
+        let mut geom = Geometry::build(&scene).expect("geometry");
+        let lights = Lights::build(&scene, &mut geom).expect("lights");
+        (geom, lights)
+    }
+
+    /// Eleven analytic lights (more than a pick caches) of every kind, some of which cannot reach
+    /// part of the space (a one-sided area light facing up, a narrow spot), and an emissive panel.
+    const MANY: &str = r#"
+        [camera]
+        width = 8
+        height = 8
+        fov_y_deg = 50.0
+        position = [0.0, 1.0, 4.0]
+        look_at = [0.0, 0.5, 0.0]
+
+        [[objects]]
+        name = "floor"
+        shape = { type = "quad", size = [6.0, 6.0] }
+        transform = { rotate_deg = [-90.0, 0.0, 0.0] }
+        material = { base_color = [0.7, 0.6, 0.5] }
+
+        [[objects]]
+        name = "panel"
+        shape = { type = "quad", size = [0.5, 0.5] }
+        transform = { translate = [0.0, 1.2, -1.5] }
+        material = { base_color = [0.1, 0.1, 0.1], emission_color = [1.0, 0.8, 0.6], emission_strength = 3.0 }
+
+        [[lights]]
+        type = "point"
+        position = [-1.5, 1.5, 1.5]
+        power = 80.0
+        radius = 0.2
+
+        [[lights]]
+        type = "point"
+        position = [1.5, 0.3, 0.5]
+        power = 5.0
+
+        [[lights]]
+        type = "point"
+        position = [0.0, 3.0, -2.0]
+        power = 300.0
+        radius = 0.05
+
+        [[lights]]
+        type = "spot"
+        position = [0.0, 2.0, 0.0]
+        direction = [0.0, -1.0, 0.0]
+        spot_size_deg = 20.0
+        blend = 0.0
+        power = 200.0
+
+        [[lights]]
+        type = "spot"
+        position = [1.0, 2.0, 1.0]
+        direction = [0.0, -1.0, 0.0]
+        spot_size_deg = 60.0
+        blend = 0.5
+        power = 100.0
+        radius = 0.1
+
+        [[lights]]
+        type = "area"
+        position = [1.0, 2.5, 1.0]
+        look_at = [0.0, 0.0, 0.0]
+        size = 1.0
+        power = 150.0
+
+        [[lights]]
+        type = "area"
+        position = [0.0, 0.5, 0.0]
+        direction = [0.0, 1.0, 0.0]
+        shape = "disk"
+        size = 0.4
+        power = 40.0
+
+        [[lights]]
+        type = "area"
+        position = [-2.0, 1.0, 0.0]
+        direction = [1.0, 0.0, 0.0]
+        size = 0.5
+        power = 20.0
+
+        [[lights]]
+        type = "sun"
+        direction = [0.3, -1.0, -0.4]
+        strength = 2.0
+        angle_deg = 5.0
+
+        [[lights]]
+        type = "sun"
+        direction = [-0.5, -0.2, 0.1]
+        strength = 0.5
+
+        [world]
+        color = [0.2, 0.25, 0.3]
+    "#;
+
+    /// Whether light `i` can send any light to `p` (by any sampling technique).
+    fn can_reach(lights: &Lights, i: usize, p: V3) -> bool {
+        match &lights.lights[i] {
+            LightKind::Area { c, n, .. } => (p - *c).dot(*n) > 0.0,
+            l @ LightKind::Spot { p: lp, .. } => l.spot_mask(p - *lp) > 0.0,
+            // A constant world is left to BSDF samples.
+            LightKind::Env => lights.env_peaked > 0.0,
+            _ => true,
+        }
+    }
+
+    fn random_point(rng: &mut Rng) -> ShadingPoint {
+        ShadingPoint {
+            p: V3::new(6.0 * rng.f32() - 3.0, 3.0 * rng.f32() - 0.2, 6.0 * rng.f32() - 3.0),
+            n: uniform_sphere(rng.f32(), rng.f32()),
+            two_sided: rng.f32() < 0.25,
+            solid_angle: rng.f32() < 0.5,
+        }
+    }
+
+    #[test]
+    fn pick_probabilities_sum_to_one_and_are_positive_wherever_a_light_can_reach() {
+        let (_, lights) = lights_of(MANY);
+        assert!(
+            lights.analytic == 11 && lights.items() > CACHED,
+            "{} analytic lights",
+            lights.analytic
+        );
+        assert!(lights.lights.len() > lights.analytic, "emissive triangles are lights");
+        let mut rng = Rng::new(5);
+        let (mut unreachable, mut floor_only) = (0, 0);
+        for _ in 0..2000 {
+            let sp = random_point(&mut rng);
+            let pick = lights.pick_at(sp);
+            let mut sum = 0.0f64;
+            for i in 0..lights.lights.len() {
+                let pmf = lights.pick_pmf_at(&pick, i);
+                sum += pmf as f64;
+                let reach = can_reach(&lights, i, sp.p);
+                assert_eq!(
+                    pmf > 0.0,
+                    reach,
+                    "light {i} at {:?}: pmf {pmf}, reachable {reach}",
+                    sp.p
+                );
+                unreachable += !reach as usize;
+                if i < lights.analytic && reach {
+                    // Every reachable light keeps at least its share of the power floor.
+                    assert!(pmf >= PICK_FLOOR * lights.base.pmf(i) * 0.999);
+                    floor_only += (lights.item_weight(i, &sp) == Some(0.0)) as usize;
+                }
+            }
+            assert!(
+                (sum - 1.0).abs() < 1e-5,
+                "pick probabilities at {:?} sum to {sum}",
+                sp.p
+            );
+        }
+        // The scene exercises lights that cannot reach a point and ones whose estimate is 0
+        // (facing away) but that still get the floor.
+        assert!(
+            unreachable > 500 && floor_only > 500,
+            "{unreachable} unreachable, {floor_only} floor only"
+        );
+    }
+
+    /// With one light (and a constant world, which is never light-sampled) the choice skips the
+    /// weights: the light is picked wherever it can reach the point, as the weights would say.
+    #[test]
+    fn a_single_light_is_picked_wherever_it_can_reach() {
+        let src = MANY.split("[[lights]]").next().expect("head").to_string()
+            + "[[lights]]\ntype = \"area\"\nposition = [1.0, 2.5, 1.0]\nlook_at = [0.0, 0.0, 0.0]\nsize = 1.0\npower = 150.0\n"
+            + "[world]\ncolor = [0.2, 0.25, 0.3]\n";
+        let (_, lights) = lights_of(&src.replace("emission_strength = 3.0", "emission_strength = 0.0"));
+        assert_eq!((lights.items(), lights.single_item()), (2, Some(0)));
+        let mut rng = Rng::new(2);
+        for _ in 0..1000 {
+            let sp = random_point(&mut rng);
+            let pick = lights.pick_at(sp);
+            let p = lights.pick_pmf_at(&pick, 0);
+            assert_eq!(p, if can_reach(&lights, 0, sp.p) { 1.0 } else { 0.0 });
+            assert_eq!(lights.item_weight(0, &sp).is_some(), lights.item_reaches(0, &sp));
+            assert_eq!(lights.pick_pmf_at(&pick, 1), 0.0);
+        }
+    }
+
+    #[test]
+    fn lights_are_chosen_with_their_pick_probabilities() {
+        let (_, lights) = lights_of(MANY);
+        let mut rng = Rng::new(9);
+        for _ in 0..5 {
+            let pick = lights.pick_at(random_point(&mut rng));
+            let mut counts = vec![0usize; lights.lights.len()];
+            let n = 200_000;
+            for k in 0..n {
+                let u = (k as f32 + 0.5) / n as f32;
+                let (i, p) = lights.choose(&pick, u).expect("a light");
+                assert_eq!(p, lights.pick_pmf_at(&pick, i));
+                counts[i] += 1;
+            }
+            for (i, c) in counts.iter().enumerate() {
+                let (f, p) = (*c as f64 / n as f64, lights.pick_pmf_at(&pick, i) as f64);
+                assert!((f - p).abs() < 2e-4, "light {i}: frequency {f} vs pmf {p}");
+            }
+        }
+    }
+
+    /// Light sampling at a point under a strong disk light, a weak point light off to the
+    /// side, a sun and a dim constant sky: the mean of `Li cos / pdf` is the analytic irradiance
+    /// of the lights (the sky is left to BSDF samples), and most picks go to the strong light.
+    #[test]
+    fn light_sampling_with_per_point_choice_gives_the_analytic_irradiance() {
+        let (r, h, power) = (0.5f64, 1.5f64, 300.0f64);
+        let (pp, pl) = ([2.0f64, 0.5, 1.0], 10.0f64);
+        let (sun, sun_dir) = (0.4f64, [0.2f64, -1.0, 0.3]);
+        let sky = 0.05f64;
+        let src = format!(
+            r#"
+            [camera]
+            width = 4
+            height = 4
+            fov_y_deg = 50.0
+            position = [0.0, 5.0, 5.0]
+            look_at = [0.0, 0.0, 0.0]
+
+            [[objects]]
+            name = "far"
+            shape = {{ type = "quad", size = [1.0, 1.0] }}
+            transform = {{ translate = [20.0, -5.0, 0.0] }}
+            material = {{ base_color = [0.5, 0.5, 0.5] }}
+
+            [[lights]]
+            type = "area"
+            shape = "disk"
+            position = [0.0, {h}, 0.0]
+            direction = [0.0, -1.0, 0.0]
+            size = {d}
+            power = {power}
+
+            [[lights]]
+            type = "point"
+            position = [{}, {}, {}]
+            power = {pl}
+
+            [[lights]]
+            type = "sun"
+            direction = [{}, {}, {}]
+            strength = {sun}
+
+            [world]
+            color = [{sky}, {sky}, {sky}]
+            "#,
+            pp[0],
+            pp[1],
+            pp[2],
+            sun_dir[0],
+            sun_dir[1],
+            sun_dir[2],
+            d = 2.0 * r,
+        );
+        let (geom, lights) = lights_of(&src);
+        // At the origin, normal +Y. Disk of radiance L = P / (π · πr²) on the axis at height h:
+        // E = π L r² / (h² + r²). Point: E = P/(4π) · cos / d². Sun: E = strength · cos. Sky
+        // over the upper hemisphere: E = π L.
+        let l_disk = power / (PI as f64 * PI as f64 * r * r);
+        let e_disk = PI as f64 * l_disk * r * r / (h * h + r * r);
+        let d2 = pp.iter().map(|v| v * v).sum::<f64>();
+        let e_point = pl / (4.0 * PI as f64) * (pp[1] / d2.sqrt()) / d2;
+        let sl = sun_dir.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let e_sun = sun * (-sun_dir[1] / sl);
+        // The constant sky is left to BSDF samples (never light-sampled).
+        let e_sky = 0.0;
+        let expect = e_disk + e_point + e_sun + e_sky;
+        let n = V3::new(0.0, 1.0, 0.0);
+        let pick = lights.pick_at(ShadingPoint {
+            p: V3::ZERO,
+            n,
+            two_sided: false,
+            solid_angle: false,
+        });
+        assert!(lights.pick_pmf_at(&pick, 0) > 0.8, "the strong light gets most picks");
+        let mut rng = Rng::new(11);
+        let samples = 1_000_000;
+        let mut sum = 0.0f64;
+        for _ in 0..samples {
+            if let Some(ls) = lights.sample(&geom, &pick, rng.f32(), rng.f32(), rng.f32()) {
+                let cos = ls.wi.dot(n).max(0.0) as f64;
+                sum += ls.li.x as f64 * cos / ls.pdf as f64;
+            }
+        }
+        let mean = sum / samples as f64;
+        assert!(
+            (mean - expect).abs() < 0.005 * expect,
+            "estimate {mean} vs analytic {expect} (disk {e_disk}, point {e_point}, sun {e_sun}, sky {e_sky})"
+        );
+    }
+
+    /// The pdf a light sample reports is the one the BSDF side computes for the same direction
+    /// (pick probability × direction pdf), for every light hit by rays.
+    #[test]
+    fn light_sample_pdfs_match_the_pdfs_of_bsdf_hits() {
+        // With an image world (a constant one is not light-sampled).
+        let dir = tempfile::tempdir().expect("temp dir");
+        let sky = dir.path().join("sky.exr");
+        pixl_core::io::write_image(&sky, spot_image().image()).expect("sky image");
+        let src = MANY.replace(
+            "color = [0.2, 0.25, 0.3]",
+            &format!("image = {:?}\nstrength = 0.2", sky),
+        );
+        let (geom, lights) = lights_of(&src);
+        assert!(lights.env_sampler.is_some() && lights.env_peaked > 0.0);
+        let mut rng = Rng::new(3);
+        let mut checked = [0usize; 4];
+        for _ in 0..20_000 {
+            let sp = random_point(&mut rng);
+            let pick = lights.pick_at(sp);
+            let Some(ls) = lights.sample(&geom, &pick, rng.f32(), rng.f32(), rng.f32()) else {
+                continue;
+            };
+            if ls.delta {
+                continue;
+            }
+            let ray = Ray::new(sp.p, ls.wi);
+            let clear = if ls.dist.is_finite() {
+                ls.dist * (1.0 - 1e-3)
+            } else {
+                f32::INFINITY
+            };
+            if geom.occluded(&ray, 0.0, clear) {
+                continue;
+            }
+            let mut found = Vec::new();
+            let tmax = if ls.dist.is_finite() {
+                ls.dist * 1.001
+            } else {
+                f32::INFINITY
+            };
+            lights.area_hits(&ray, tmax, |_, i, pdf, t| {
+                found.push((lights.pick_pmf_at(&pick, i) * lights.area_dir_pdf(&pick, i, pdf), t, 0))
+            });
+            if !ls.dist.is_finite() {
+                found.push((lights.env_pdf(&pick, ls.wi), f32::INFINITY, 1));
+                lights.sun_hits(ls.wi, |_, i, pdf| {
+                    found.push((lights.pick_pmf_at(&pick, i) * pdf, f32::INFINITY, 2))
+                });
+            }
+            let tri = geom
+                .intersect(&ray, 0.0, tmax)
+                .filter(|h| geom.attrs[h.prim as usize].light != u32::MAX);
+            if let Some(h) = tri {
+                found.push((lights.tri_pdf(&geom, &pick, h.prim, h.t, ls.wi.dot(h.ng).abs()), h.t, 3));
+            }
+            // The sampled light is the one at the sampled distance; its pdf must agree.
+            let same = found.iter().find(|(pdf, t, _)| {
+                ((t - ls.dist).abs() <= 1e-3 * ls.dist.max(1.0) || (t.is_infinite() && ls.dist.is_infinite()))
+                    && (pdf - ls.pdf).abs() <= 2e-3 * ls.pdf
+            });
+            let Some((_, _, kind)) = same else {
+                panic!(
+                    "no BSDF-side pdf matches the light sample's {} at {:?}: {found:?}",
+                    ls.pdf, sp.p
+                );
+            };
+            checked[*kind] += 1;
+        }
+        assert!(
+            checked.iter().all(|&c| c > 100),
+            "area/sphere, world, sun, triangle: {checked:?}"
+        );
+    }
+
+    /// Spherical-rectangle sampling: the solid angle is the area integral `∫ cos_l / d² dA`,
+    /// sampled points lie on the rectangle, and the mean of `cos θ / pdf` over samples is the
+    /// irradiance integral `∫ cos θ cos_l / d² dA` (uniform in solid angle), for points near
+    /// the rectangle, far off its axis and nearly in its plane.
+    #[test]
+    fn spherical_rectangle_samples_its_solid_angle_uniformly() {
+        let (c, ex, ey) = (V3::new(0.2, 1.0, -0.3), V3::new(0.6, 0.0, 0.0), V3::new(0.0, 0.3, 0.4));
+        let n = ex.cross(ey).normalize();
+        let recv = V3::new(0.1, 0.2, 1.0).normalize();
+        for o in [
+            V3::new(0.0, 0.0, 1.0),
+            V3::new(1.5, 1.2, 0.8),
+            V3::new(-0.3, 0.9, -0.2),
+            V3::new(0.2, 1.0, 0.05),
+        ] {
+            let r = SphericalRect::new(o, c - ex - ey, ex * 2.0, ey * 2.0).expect("in front");
+            let (mut omega, mut irr) = (0.0f64, 0.0f64);
+            let m = 400;
+            let da = (4.0 * ex.length() * ey.length()) as f64 / (m * m) as f64;
+            for i in 0..m {
+                for j in 0..m {
+                    let q = c
+                        + ex * (2.0 * (i as f32 + 0.5) / m as f32 - 1.0)
+                        + ey * (2.0 * (j as f32 + 0.5) / m as f32 - 1.0);
+                    let d = q - o;
+                    let d2 = d.dot(d) as f64;
+                    let w = d / d.length();
+                    let cos_l = w.dot(n).abs() as f64;
+                    omega += cos_l / d2 * da;
+                    irr += cos_l / d2 * da * w.dot(recv).abs() as f64;
+                }
+            }
+            assert!(
+                (r.omega as f64 - omega).abs() < 2e-3 * omega,
+                "Ω {} vs {omega} at {o:?}",
+                r.omega
+            );
+            let mut rng = Rng::new(4);
+            let samples = 200_000;
+            let mut est = 0.0f64;
+            for _ in 0..samples {
+                let q = r.sample(rng.f32(), rng.f32());
+                let local = q - c;
+                let (a, b) = (local.dot(ex) / ex.dot(ex), local.dot(ey) / ey.dot(ey));
+                assert!(
+                    a.abs() <= 1.0 + 1e-4 && b.abs() <= 1.0 + 1e-4 && local.dot(n).abs() < 1e-4,
+                    "{q:?} off the rectangle"
+                );
+                let w = (q - o).normalize();
+                est += w.dot(recv).abs() as f64 * r.omega as f64;
+            }
+            let est = est / samples as f64;
+            assert!((est - irr).abs() < 5e-3 * irr, "irradiance {est} vs {irr} at {o:?}");
+        }
+    }
+
+    fn spot_image() -> Texture {
+        // A dim gradient, a black band and a bright 2×2 spot.
+        Texture::from_image(Image::from_fn(32, 16, 3, |x, y, c| {
+            if (20..22).contains(&x) && (4..6).contains(&y) {
+                [50.0, 40.0, 30.0][c]
+            } else if (8..12).contains(&x) {
+                0.0
+            } else {
+                0.05 + 0.01 * y as f32
+            }
+        }))
+    }
+
+    #[test]
+    fn only_the_light_of_a_world_above_its_mean_draws_light_samples() {
+        let flat = Texture::from_image(Image::from_fn(16, 8, 3, |_, _, _| 0.3));
+        assert!(env_peak_share(&flat).abs() < 1e-6);
+        let peaked = env_peak_share(&spot_image());
+        assert!(peaked > 0.5 && peaked < 1.0, "{peaked}");
+        // A constant world is never light-sampled (BSDF samples find it).
+        let (_, lights) = lights_of(MANY);
+        let env = lights.env_index.expect("a world");
+        let sp = ShadingPoint {
+            p: V3::new(0.0, 0.01, 0.0),
+            n: V3::new(0.0, 1.0, 0.0),
+            two_sided: false,
+            solid_angle: true,
+        };
+        let pick = lights.pick_at(sp);
+        assert_eq!(lights.item_weight(env, &sp), None);
+        assert_eq!(lights.pick_pmf_at(&pick, env), 0.0);
+        assert_eq!(lights.env_pdf(&pick, V3::new(0.0, 1.0, 0.0)), 0.0);
+    }
+
+    #[test]
+    fn world_image_sampling_pdf_integrates_to_one_matches_a_histogram_and_covers_every_lit_direction() {
+        let tex = spot_image();
+        let rot = 30f32.to_radians();
+        let s = EnvSampler::new(&tex, rot).expect("sampler");
+        let env = Environment {
+            radiance: V3::ONE,
+            image: Some(tex),
+            rotation: rot,
+        };
+        // ∫ pdf dω over the sphere, midpoint rule on a fine (θ, φ) grid.
+        let (nt, np) = (400, 800);
+        let mut integral = 0.0f64;
+        for i in 0..nt {
+            let theta = PI as f64 * (i as f64 + 0.5) / nt as f64;
+            for j in 0..np {
+                let phi = 2.0 * PI as f64 * (j as f64 + 0.5) / np as f64;
+                let d = V3::new(
+                    (theta.sin() * phi.cos()) as f32,
+                    theta.cos() as f32,
+                    (theta.sin() * phi.sin()) as f32,
+                );
+                integral += s.pdf(d) as f64 * theta.sin() * (PI as f64 / nt as f64) * (2.0 * PI as f64 / np as f64);
+            }
+        }
+        assert!((integral - 1.0).abs() < 2e-3, "∫ pdf = {integral}");
+        // Samples: the reported pdf is the pdf of the direction, every sampled direction sees
+        // light, and the sample counts per image cell follow the pdf.
+        let mut rng = Rng::new(1);
+        let n = 400_000;
+        let (mut counts, mut lit, mut agree) = (vec![0usize; 32 * 16], 0, 0);
+        let mut mc = 0.0f64;
+        for _ in 0..n {
+            let (d, pdf) = s.sample(rng.f32(), rng.f32()).expect("a direction");
+            agree += ((s.pdf(d) - pdf).abs() <= 1e-3 * pdf) as usize;
+            lit += (env.eval(d).luminance() > 0.0) as usize;
+            mc += env.eval(d).luminance() as f64 / pdf as f64;
+            let (sn, cs) = (-rot).sin_cos();
+            let r = V3::new(cs * d.x + sn * d.z, d.y, -sn * d.x + cs * d.z);
+            let u = 0.5 - (-r.z).atan2(r.x) / (2.0 * PI);
+            let v = 0.5 - r.y.atan2((r.x * r.x + r.z * r.z).sqrt()) / PI;
+            let (x, y) = (((u * 32.0) as usize).min(31), ((v * 16.0) as usize).min(15));
+            counts[y * 32 + x] += 1;
+        }
+        assert!(agree as f64 > 0.999 * n as f64, "{agree} of {n} pdfs agree");
+        // (Half of each cell next to the black band lies in the dark: a few samples are wasted.)
+        assert!(
+            lit as f64 > 0.995 * n as f64,
+            "{lit} of {n} sampled directions see light"
+        );
+        for y in 0..16 {
+            for x in 0..32 {
+                let p = s.dist.pdf((x as f32 + 0.5) / 32.0, (y as f32 + 0.5) / 16.0) as f64 / (32.0 * 16.0);
+                let f = counts[y * 32 + x] as f64 / n as f64;
+                let sigma = (p * (1.0 - p) / n as f64).sqrt();
+                assert!((f - p).abs() < 5.0 * sigma + 1e-5, "cell ({x}, {y}): {f} vs {p}");
+                if (9..11).contains(&x) {
+                    assert_eq!(counts[y * 32 + x], 0, "the black band is never sampled");
+                }
+            }
+        }
+        // ∫ L dω: the importance-sampled estimate against the midpoint rule.
+        let mut exact = 0.0f64;
+        for i in 0..nt {
+            let theta = PI as f64 * (i as f64 + 0.5) / nt as f64;
+            for j in 0..np {
+                let phi = 2.0 * PI as f64 * (j as f64 + 0.5) / np as f64;
+                let d = V3::new(
+                    (theta.sin() * phi.cos()) as f32,
+                    theta.cos() as f32,
+                    (theta.sin() * phi.sin()) as f32,
+                );
+                let l = env.eval(d).luminance();
+                // Wherever the world sends light, the sampler can sample it.
+                assert!(!(l > 0.0) || s.pdf(d) > 0.0, "radiance {l} but pdf 0 along {d:?}");
+                exact += l as f64 * theta.sin() * (PI as f64 / nt as f64) * (2.0 * PI as f64 / np as f64);
+            }
+        }
+        let mc = mc / n as f64;
+        assert!((mc - exact).abs() < 0.01 * exact, "{mc} vs {exact}");
     }
 }

@@ -342,6 +342,18 @@ impl Bsdf {
         self.p_diff + self.p_spec > 0.0 || self.rough_trans
     }
 
+    /// The shading normal on the side of `wo` (the local +Z of [`Bsdf::eval`]).
+    #[inline]
+    pub fn normal(&self) -> V3 {
+        self.frame.n
+    }
+
+    /// Whether light from below the surface can scatter towards `wo` (a transmission lobe).
+    #[inline]
+    pub fn transmits(&self) -> bool {
+        self.p_trans > 0.0
+    }
+
     /// Evaluates the non-delta lobes for the incident direction `wi` (world, unit).
     #[inline(always)]
     pub fn eval(&self, wi_world: V3) -> BsdfEval {

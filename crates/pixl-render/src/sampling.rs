@@ -187,6 +187,69 @@ impl Distribution1D {
     }
 }
 
+/// A piecewise-constant density on `[0, 1)²` over a `width × height` grid of non-negative
+/// cell weights (row-major, row `y` covering `[y/h, (y+1)/h)` of the second coordinate): a
+/// marginal distribution over rows and one conditional distribution over the cells of each row.
+#[derive(Clone, Debug)]
+pub struct Distribution2D {
+    rows: Vec<Distribution1D>,
+    marginal: Distribution1D,
+    width: usize,
+    height: usize,
+}
+
+impl Distribution2D {
+    /// `weights` has `width × height` entries (row-major); `None` when the sizes disagree or a
+    /// size is 0.
+    pub fn new(weights: &[f32], width: usize, height: usize) -> Option<Self> {
+        if width == 0 || height == 0 || weights.len() != width.checked_mul(height)? {
+            return None;
+        }
+        let rows: Vec<Distribution1D> = weights.chunks_exact(width).map(Distribution1D::new).collect();
+        let marginal = Distribution1D::new(&rows.iter().map(|r| r.total).collect::<Vec<_>>());
+        Some(Distribution2D {
+            rows,
+            marginal,
+            width,
+            height,
+        })
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.marginal.is_empty()
+    }
+
+    /// A point `(x, y)` in `[0, 1)²` with the density of [`Distribution2D::pdf`] (`None` when
+    /// every weight is 0).
+    #[inline]
+    pub fn sample(&self, u1: f32, u2: f32) -> Option<([f32; 2], f32)> {
+        if self.is_empty() {
+            return None;
+        }
+        let (y, ry) = self.marginal.sample(u1);
+        let row = &self.rows[y];
+        let (x, rx) = row.sample(u2);
+        let pdf = self.marginal.pmf(y) * row.pmf(x) * (self.width * self.height) as f32;
+        let px = ((x as f32 + rx) / self.width as f32).min(1.0 - f32::EPSILON);
+        let py = ((y as f32 + ry) / self.height as f32).min(1.0 - f32::EPSILON);
+        Some(([px, py], pdf))
+    }
+
+    /// The density at `(x, y)` in `[0, 1]²` (coordinates outside are clamped to the edge cells).
+    #[inline]
+    pub fn pdf(&self, x: f32, y: f32) -> f32 {
+        if self.is_empty() {
+            return 0.0;
+        }
+        let cell = |t: f32, n: usize| {
+            let i = (t * n as f32) as isize;
+            i.clamp(0, n as isize - 1) as usize
+        };
+        let (ix, iy) = (cell(x, self.width), cell(y, self.height));
+        self.marginal.pmf(iy) * self.rows[iy].pmf(ix) * (self.width * self.height) as f32
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -207,3 +207,44 @@ fn bad_options_are_errors() {
     let e = render(&s, &opts(), &|_, _| {}).unwrap_err().to_string();
     assert!(e.contains("does-not-exist.obj"), "{e}");
 }
+
+/// The bundled demo scene keeps its pass means under the per-point light choice: image means
+/// of a 16-spp render at its own 160×128 against Blender 5.0.1 Cycles' 1024-spp render of the
+/// scene at 256×205 (`scripts/bench-noise-vs-cycles.sh`, BENCHMARKS.md). Combined, Col and Env
+/// means do not depend on the resolution; Dir and Ind passes, divided by the colour per pixel,
+/// a little (at edges), hence their wider tolerances.
+#[test]
+fn demo_scene_keeps_its_pass_means() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo/scene.toml");
+    let scene = Scene::load(&path).expect("demo scene");
+    let opts = RenderOptions {
+        spp: 16,
+        seed: 2,
+        ..Default::default()
+    };
+    let film = render(&scene, &opts, &|_, _| {}).expect("render");
+    for (pass, cycles, tol) in [
+        ("DiffCol", 0.63329, 0.005),
+        ("DiffDir", 1.47762, 0.01),
+        ("DiffInd", 0.86135, 0.02),
+        ("GlossDir", 1.11834, 0.02),
+        ("GlossInd", 1.10760, 0.03),
+        ("Env", 0.001799, 0.01),
+        ("Combined", 1.73199, 0.01),
+    ] {
+        let img = film.pass(pass).expect("pass");
+        // R, G, B (Combined also has alpha).
+        let rgb: Vec<f64> = img
+            .data
+            .chunks_exact(img.channels)
+            .flat_map(|p| p[..3].iter().map(|v| *v as f64))
+            .collect();
+        let mean = rgb.iter().sum::<f64>() / rgb.len() as f64;
+        let rel = (mean - cycles) / cycles;
+        assert!(
+            rel.abs() < tol,
+            "{pass}: mean {mean} vs Cycles {cycles} ({:+.2} %)",
+            100.0 * rel
+        );
+    }
+}
