@@ -2,7 +2,8 @@
 //! textured) holding 2–5 random spheres and boxes with random colours, procedural checker /
 //! value-noise textures, roughness and metallic, under 1–2 random lights of {point, spot, area,
 //! sun} and a random world strength. Kept so that sets made with it (and the bundled demo
-//! weights' training runs) can be made again bit for bit.
+//! weights' training runs) can be made again: the same scenes and lights (the pixels follow the
+//! renderer's sampling).
 use crate::error::Result;
 use pixl_core::output::Provisional;
 use pixl_core::{Image, Rng};
