@@ -53,6 +53,48 @@ fn photo_and_depth(dir: &Path, w: usize, h: usize) -> (PathBuf, PathBuf) {
     (photo, depth)
 }
 
+/// No patch grid: a flat-colour photo of a wall relit with the bundled weights (patch size 8)
+/// under every preset shows no pattern repeating every 8 pixels above 1/255 RMS
+/// (`pixl_eval::patch_grid_amplitude`; 0.09–0.17/255 for the weights bundled when this was
+/// written, at 16 spp in a release build).
+#[test]
+fn bundled_weights_print_no_patch_grid_on_a_flat_photo() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (128, 96);
+    let photo = dir.path().join("flat.png");
+    pixl_core::io::write_image(&photo, &Image::from_fn(w, h, 3, |_, _, c| [0.55, 0.45, 0.35][c])).unwrap();
+    let depth = dir.path().join("depth.exr");
+    pixl_core::io::write_image(
+        &depth,
+        &Image::from_fn(w, h, 1, |x, _, _| 2.5 + 0.5 * x as f32 / w as f32),
+    )
+    .unwrap();
+    for preset in [
+        "cool-side-flash",
+        "warm-overhead-flash",
+        "dim-overhead-spot",
+        "soft-frontal-sun",
+        "warm-interior-sun",
+    ] {
+        let out = dir.path().join(format!("{preset}.png"));
+        ok(&[
+            "relight",
+            s(&photo),
+            "--depth",
+            s(&depth),
+            "--preset",
+            preset,
+            "--spp",
+            "4",
+            "-o",
+            s(&out),
+        ]);
+        let relit = pixl_core::io::read_rgb(&out).unwrap();
+        let grid = pixl_eval::patch_grid_amplitude(&relit, 8).unwrap();
+        assert!(grid < 1.0 / 255.0, "{preset}: patch-grid RMS {:.2}/255", grid * 255.0);
+    }
+}
+
 #[test]
 fn one_command_with_depth_and_keep_writes_the_relit_photo_and_every_intermediate() {
     let dir = tempfile::tempdir().unwrap();

@@ -72,6 +72,9 @@ pub enum ComposeTonemap {
     Clip,
     /// Reinhard with auto-exposure ([`pixl_core::image::tonemap_reinhard`]).
     Reinhard,
+    /// A camera's tone curve ([`pixl_core::image::tonemap_camera`]), as `pixl synth --style
+    /// photo` shows its images.
+    Camera,
 }
 
 /// The recomposed target intrinsics as the prediction ([`compose_baseline`], or Reinhard).
@@ -85,6 +88,7 @@ impl Method for Compose {
         match self.tonemap {
             ComposeTonemap::Clip => "Compose (A⊙S+R of C_T)",
             ComposeTonemap::Reinhard => "Compose, Reinhard (A⊙S+R of C_T)",
+            ComposeTonemap::Camera => "Compose, camera (A⊙S+R of C_T)",
         }
     }
     fn cue(&self) -> &str {
@@ -101,11 +105,13 @@ impl Method for Compose {
         Ok(match self.tonemap {
             ComposeTonemap::Clip => compose_baseline(ct),
             ComposeTonemap::Reinhard => pixl_core::image::tonemap_reinhard(&ct.recompose()),
+            ComposeTonemap::Camera => pixl_core::image::tonemap_camera(&ct.recompose()),
         })
     }
 }
 
-/// Parses a `--baselines` list (`identity,compose,compose-reinhard`; empty entries ignored).
+/// Parses a `--baselines` list (`identity,compose,compose-reinhard,compose-camera`; empty
+/// entries ignored).
 pub fn parse_baselines(list: &str) -> Result<Vec<Box<dyn Method>>> {
     let mut out: Vec<Box<dyn Method>> = Vec::new();
     for name in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
@@ -114,6 +120,9 @@ pub fn parse_baselines(list: &str) -> Result<Vec<Box<dyn Method>>> {
             "compose" => out.push(Box::new(Compose::default())),
             "compose-reinhard" => out.push(Box::new(Compose {
                 tonemap: ComposeTonemap::Reinhard,
+            })),
+            "compose-camera" => out.push(Box::new(Compose {
+                tonemap: ComposeTonemap::Camera,
             })),
             other => return Err(EvalError::UnknownBaseline(other.to_string())),
         }
@@ -234,6 +243,36 @@ mod tests {
     /// Reinhard compose: per channel `v·k / (1 + v·k)`, sRGB-encoded, with the exposure `k =
     /// 0.18 / exp(mean ln(1e-4 + luminance))` — recomputed here in f64; and being scale-free, it
     /// shows a C_T and the same C_T with twice the shading (and residual) alike.
+    /// compose-camera shows the recomposition with the camera tone curve, so the light's
+    /// overall scale (shading and residual ×4) cancels, and it differs from Reinhard.
+    #[test]
+    fn compose_camera_is_the_camera_curve_of_the_recomposition_and_scale_free() {
+        let a = Image::from_fn(8, 6, 3, |x, _, c| [0.5, 0.8, 0.3][c] * (x as f32 + 1.0) / 8.0);
+        let s = Image::from_fn(8, 6, 3, |_, y, c| 0.2 + 0.3 * y as f32 + 0.1 * c as f32);
+        let r = Image::from_fn(8, 6, 3, |x, _, c| 0.01 * (c + x) as f32);
+        let m = Compose {
+            tonemap: ComposeTonemap::Camera,
+        };
+        let ct = Ct::new(a.clone(), s.clone(), r.clone()).unwrap();
+        let out = m.predict(&a, Some(&ct)).unwrap();
+        assert_eq!(out.data, pixl_core::image::tonemap_camera(&ct.recompose()).data);
+        let brighter = Ct::new(a.clone(), s.map(|v| 4.0 * v), r.map(|v| 4.0 * v)).unwrap();
+        let out4 = m.predict(&a, Some(&brighter)).unwrap();
+        let worst = out
+            .data
+            .iter()
+            .zip(&out4.data)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0f32, f32::max);
+        assert!(worst < 1e-3, "{worst}");
+        let reinhard = Compose {
+            tonemap: ComposeTonemap::Reinhard,
+        }
+        .predict(&a, Some(&ct))
+        .unwrap();
+        assert!(reinhard.data.iter().zip(&out.data).any(|(p, q)| (p - q).abs() > 0.02));
+    }
+
     #[test]
     fn compose_reinhard_is_auto_exposed_reinhard_of_recomposition() {
         let a = Image::from_fn(3, 2, 3, |x, _, c| [0.5, 0.8, 0.3][c] * (x as f32 + 1.0) / 3.0);
@@ -280,12 +319,13 @@ mod tests {
 
     #[test]
     fn baseline_list_parses_and_rejects() {
-        let m = parse_baselines("identity, compose,compose-reinhard").unwrap();
+        let m = parse_baselines("identity, compose,compose-reinhard,compose-camera").unwrap();
         assert_eq!(
             m.iter().map(|m| m.needs_ct()).collect::<Vec<_>>(),
-            vec![false, true, true]
+            vec![false, true, true, true]
         );
         assert_eq!(m[2].name(), "Compose, Reinhard (A⊙S+R of C_T)");
+        assert_eq!(m[3].name(), "Compose, camera (A⊙S+R of C_T)");
         assert!(matches!(parse_baselines("identity,magic"), Err(EvalError::UnknownBaseline(n)) if n == "magic"));
         assert!(parse_baselines("").unwrap().is_empty());
     }

@@ -31,7 +31,7 @@ pub enum EvalError {
     },
     #[error("method {method}: {reason}")]
     Method { method: String, reason: String },
-    #[error("unknown baseline {0:?} (expected identity, compose or compose-reinhard)")]
+    #[error("unknown baseline {0:?} (expected identity, compose, compose-reinhard or compose-camera)")]
     UnknownBaseline(String),
     #[error("nothing to evaluate: {0}")]
     Empty(String),

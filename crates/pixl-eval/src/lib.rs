@@ -8,10 +8,13 @@
 //! - [`baselines`]: the [`Method`] trait, [`Identity`], [`Compose`], [`ModelMethod`].
 //! - [`response`]: the light-response score ([`light_response`]): how much of a change of light
 //!   shows up in relit images, without ground truth.
+//! - [`grid`]: the patch-grid score ([`patch_grid_amplitude`]): the RMS of an image's pattern
+//!   repeating with the network's patch period.
 //! - [`run`]: pair lists and [`run_eval`].
 //! - [`report`]: `results.md` / `results.json` / `per_pair.csv`.
 pub mod baselines;
 pub mod error;
+pub mod grid;
 pub mod lpips;
 pub mod metrics;
 pub mod report;
@@ -21,6 +24,7 @@ pub mod timing;
 
 pub use baselines::{compose_baseline, parse_baselines, Compose, Identity, Method, ModelMethod};
 pub use error::{EvalError, Result};
+pub use grid::patch_grid_amplitude;
 pub use lpips::{Lpips, LpipsError, LpipsNet};
 pub use metrics::{psnr, scale_correct, ssim, MetricError};
 pub use report::write_reports;

@@ -29,6 +29,8 @@ pub enum MetricError {
     NonFinite { which: &'static str },
     #[error("the light-response score needs one relit image per render and at least two lightings, got {relit} relit images and {renders} renders")]
     Lightings { relit: usize, renders: usize },
+    #[error("the patch-grid score needs an image whose sides are multiples of the period (>= 2), got {width}x{height} and period {period}")]
+    Grid { width: usize, height: usize, period: usize },
     #[error("the renders are the same under every lighting: there is no change of light to respond to")]
     NoLightChange,
 }

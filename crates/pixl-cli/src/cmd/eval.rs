@@ -24,8 +24,9 @@ pub struct Args {
     #[arg(long)]
     pub weights: Option<PathBuf>,
     /// Baselines, comma-separated: identity (the source), compose (A⊙S+R of C_T, clipped, sRGB),
-    /// compose-reinhard (A⊙S+R shown with Reinhard auto-exposure, as `pixl synth` shows its
-    /// images). Empty for none.
+    /// compose-reinhard (A⊙S+R shown with Reinhard auto-exposure, as `pixl synth --style boxes`
+    /// shows its images), compose-camera (with a camera's tone curve, as the photo style does).
+    /// Empty for none.
     #[arg(long, default_value = "identity,compose")]
     pub baselines: String,
     /// Pair list, CSV `scene,source,target` (image file names). Default: per scene, image i → i+1 (mod n).
