@@ -38,6 +38,19 @@ impl ExrChannels {
         self.channels.iter().map(|(n, _)| n.as_str())
     }
 
+    /// Channel `ch` of render pass `pass`, named `<pass>.<ch>` or `<…>.<pass>.<ch>` (a view-layer
+    /// prefix), under the pass's long (Blender 4/5) or short (older) name, long first.
+    pub fn pass_channel(&self, pass: &crate::passes::Pass, ch: &str) -> Option<&[f32]> {
+        [pass.long, pass.short].iter().find_map(|name| {
+            let suffix = format!("{name}.{ch}");
+            let dotted = format!(".{suffix}");
+            self.channels
+                .iter()
+                .find(|(n, _)| *n == suffix || n.ends_with(&dotted))
+                .map(|(_, d)| d.as_slice())
+        })
+    }
+
     /// Adds a channel; its length must be `width * height`.
     pub fn push(&mut self, name: impl Into<String>, data: Vec<f32>) -> Result<()> {
         let name = name.into();
@@ -204,6 +217,20 @@ pub fn write_exr_channels(path: &Path, img: &ExrChannels) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A pass channel is found under its long or short name, with or without a view-layer
+    /// prefix; a name that merely ends in the same letters does not match.
+    #[test]
+    fn pass_channel_by_long_or_short_name() {
+        let mut ex = ExrChannels::new(1, 1);
+        ex.push("ViewLayer.Diffuse Direct.R", vec![1.0]).unwrap();
+        ex.push("DiffCol.G", vec![2.0]).unwrap();
+        ex.push("ViewLayer.XEmission.B", vec![3.0]).unwrap();
+        assert_eq!(ex.pass_channel(&crate::passes::DIFF_DIR, "R"), Some(&[1.0][..]));
+        assert_eq!(ex.pass_channel(&crate::passes::DIFF_COL, "G"), Some(&[2.0][..]));
+        assert_eq!(ex.pass_channel(&crate::passes::EMIT, "B"), None);
+        assert_eq!(ex.pass_channel(&crate::passes::DIFF_DIR, "G"), None);
+    }
 
     /// The threaded writer gives the file a one-thread write gives, byte for byte, and it reads
     /// back exactly (an image of many ZIP blocks with incompressible noise and a flat channel).

@@ -190,18 +190,21 @@ pub fn linear_to_srgb(v: f32) -> f32 {
     }
 }
 
+/// Rec. 709 luminance of one pixel's first three channels, or its single channel.
+fn pixel_luminance(px: &[f32], channels: usize) -> f32 {
+    if channels >= 3 {
+        0.2126 * px[0] + 0.7152 * px[1] + 0.0722 * px[2]
+    } else {
+        px[0]
+    }
+}
+
 /// The exposure that maps the log-average luminance (Rec. 709 weights on the first three
 /// channels, or the single channel; `10⁻⁴` added before the logarithm) to the key 0.18: the
 /// auto-exposure of [`tonemap_reinhard`] and [`tonemap_camera`].
 pub fn auto_exposure(img: &Image) -> f32 {
     let ch = img.channels;
-    let lum = |px: &[f32]| {
-        if ch >= 3 {
-            0.2126 * px[0] + 0.7152 * px[1] + 0.0722 * px[2]
-        } else {
-            px[0]
-        }
-    };
+    let lum = |px: &[f32]| pixel_luminance(px, ch);
     let n = img.num_pixels().max(1) as f64;
     let log_avg = (img
         .data
@@ -241,13 +244,7 @@ pub fn tonemap_camera(img: &Image) -> Image {
     let mut lum: Vec<f32> = img
         .data
         .chunks_exact(ch.max(1))
-        .map(|px| {
-            if ch >= 3 {
-                0.2126 * px[0] + 0.7152 * px[1] + 0.0722 * px[2]
-            } else {
-                px[0]
-            }
-        })
+        .map(|px| pixel_luminance(px, ch))
         .collect();
     let k = (lum.len() * 99 / 100).min(lum.len().saturating_sub(1));
     let p99 = if lum.is_empty() {

@@ -12,20 +12,9 @@
 //!
 //! An optional fifth argument sets the native `max_bounces` (default 8, as the exported script's
 //! `--max-bounces`).
-use pixl_core::exrio::{read_exr_channels, ExrChannels};
+use pixl_core::exrio::read_exr_channels;
 use pixl_core::passes;
 use std::path::Path;
-
-/// The channel `<…>.<pass>.<ch>` by long or short pass name.
-fn channel<'a>(exr: &'a ExrChannels, pass: &passes::Pass, ch: &str) -> Option<&'a [f32]> {
-    [pass.long, pass.short].iter().find_map(|name| {
-        let suffix = format!("{name}.{ch}");
-        exr.channels
-            .iter()
-            .find(|(n, _)| *n == suffix || n.ends_with(&format!(".{suffix}")))
-            .map(|(_, d)| d.as_slice())
-    })
-}
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -60,7 +49,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         let (mut sa, mut sb, mut sd, mut n) = (0f64, 0f64, 0f64, 0usize);
         for ch in ["R", "G", "B"] {
-            let (Some(x), Some(y)) = (channel(&a, pass, ch), channel(&b, pass, ch)) else {
+            let (Some(x), Some(y)) = (a.pass_channel(pass, ch), b.pass_channel(pass, ch)) else {
                 continue;
             };
             for (p, q) in x.iter().zip(y) {

@@ -11,20 +11,9 @@
 //! (ours or Cycles'), and for every RGB pass present in both (not Normal) prints the
 //! root-mean-square difference over pixels and channels, both image means, and the share of the
 //! pixels lit in the reference (sum of R, G, B) that get less than half of it in the test.
-use pixl_core::exrio::{read_exr_channels, ExrChannels};
+use pixl_core::exrio::read_exr_channels;
 use pixl_core::passes;
 use std::path::Path;
-
-/// The channel `<…>.<pass>.<ch>` by long or short pass name.
-fn channel<'a>(exr: &'a ExrChannels, pass: &passes::Pass, ch: &str) -> Option<&'a [f32]> {
-    [pass.long, pass.short].iter().find_map(|name| {
-        let suffix = format!("{name}.{ch}");
-        exr.channels
-            .iter()
-            .find(|(n, _)| *n == suffix || n.ends_with(&format!(".{suffix}")))
-            .map(|(_, d)| d.as_slice())
-    })
-}
 
 fn render(scene: &str, spp: &str, out: &str, rest: &[String]) -> Result<(), Box<dyn std::error::Error>> {
     let scene = pixl_render::Scene::load(Path::new(scene))?;
@@ -63,7 +52,7 @@ fn rmse(reference: &str, test: &str) -> Result<(), Box<dyn std::error::Error>> {
         // Per pixel, the sum over R, G, B of reference and test.
         let (mut pr, mut pt) = (vec![0f64; a.width * a.height], vec![0f64; a.width * a.height]);
         for ch in ["R", "G", "B"] {
-            let (Some(x), Some(y)) = (channel(&a, pass, ch), channel(&b, pass, ch)) else {
+            let (Some(x), Some(y)) = (a.pass_channel(pass, ch), b.pass_channel(pass, ch)) else {
                 continue;
             };
             for (i, (r, t)) in x.iter().zip(y).enumerate() {

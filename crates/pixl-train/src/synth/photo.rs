@@ -170,27 +170,29 @@ impl Builder<'_> {
     }
 
     fn push(&mut self, name: &str, shape: Shape, translate: [f32; 3], rotate_deg: [f32; 3], material: Material) {
-        self.objects.push(Object {
-            name: format!("{name}{}", self.objects.len()),
-            shape,
-            transform: Transform {
-                translate,
-                rotate_deg,
-                ..Default::default()
-            },
-            material,
-        });
+        let transform = Transform {
+            translate,
+            rotate_deg,
+            ..Default::default()
+        };
+        self.push_transformed(name, shape, transform, material);
     }
 
     fn push_scaled(&mut self, name: &str, shape: Shape, translate: [f32; 3], scale: [f32; 3], material: Material) {
+        let transform = Transform {
+            translate,
+            scale,
+            ..Default::default()
+        };
+        self.push_transformed(name, shape, transform, material);
+    }
+
+    /// Adds an object named `<name><index>`.
+    fn push_transformed(&mut self, name: &str, shape: Shape, transform: Transform, material: Material) {
         self.objects.push(Object {
             name: format!("{name}{}", self.objects.len()),
             shape,
-            transform: Transform {
-                translate,
-                scale,
-                ..Default::default()
-            },
+            transform,
             material,
         });
     }
