@@ -336,3 +336,63 @@ fn an_impossible_request_is_refused_with_its_figure_and_the_flag_to_change() {
         &side.to_string(),
     ]);
 }
+
+/// `--int8` with the bundled weights: the relit photo stays within a small difference of the
+/// f32 one (bitwise the same on a CPU without AVX-512 VNNI, where it warns and runs f32), and
+/// it is refused with bf16.
+#[test]
+fn int8_relights_close_to_f32_and_refuses_bf16() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (96, 64);
+    let ct_path = dir.path().join("ct.exr");
+    write_ct(&ct_path, &smooth_ct(w, h)).unwrap();
+    let src = dir.path().join("src.png");
+    let photo = Image::from_fn(w, h, 3, |x, y, c| {
+        0.15 + 0.6 * ((x as f32 * 0.11 + c as f32).sin() * 0.5 + 0.5) * (y as f32 / h as f32)
+    });
+    pixl_core::io::write_image(&src, &photo).unwrap();
+    let run = |name: &str, extra: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec![
+            "relight",
+            "--source",
+            s(&src),
+            "--intrinsics",
+            s(&ct_path),
+            "--out",
+            s(&out),
+        ];
+        args.extend_from_slice(extra);
+        ok(&args);
+        pixl_core::io::read_rgb(&out).unwrap()
+    };
+    let f32_out = run("f32.exr", &[]);
+    let int8_out = run("int8.exr", &["--int8"]);
+    let mse = f32_out
+        .data
+        .iter()
+        .zip(&int8_out.data)
+        .map(|(a, b)| ((a - b) as f64).powi(2))
+        .sum::<f64>()
+        / f32_out.data.len() as f64;
+    if pixl_nn::int8::available() {
+        let psnr = 10.0 * (1.0 / mse).log10();
+        assert!(mse > 0.0 && psnr > 40.0, "int8 against f32: {psnr:.1} dB");
+    } else {
+        assert_eq!(mse, 0.0);
+    }
+    let refused = pixl(&[
+        "relight",
+        "--source",
+        s(&src),
+        "--intrinsics",
+        s(&ct_path),
+        "--out",
+        s(&dir.path().join("x.exr")),
+        "--int8",
+        "--dtype",
+        "bf16",
+    ]);
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--int8"));
+}

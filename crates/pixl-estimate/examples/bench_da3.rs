@@ -37,7 +37,7 @@ fn parse_args() -> Result<Args, String> {
                 let (w, h) = v.split_once('x').ok_or(format!("--size {v}: expected WxH"))?;
                 let w: usize = w.parse().map_err(|_| format!("--size {v}: bad width"))?;
                 let h: usize = h.parse().map_err(|_| format!("--size {v}: bad height"))?;
-                if w == 0 || h == 0 || w % 14 != 0 || h % 14 != 0 {
+                if w == 0 || h == 0 || !w.is_multiple_of(14) || !h.is_multiple_of(14) {
                     return Err(format!("--size {v}: sides must be positive multiples of 14"));
                 }
                 a.sizes.push((w, h));

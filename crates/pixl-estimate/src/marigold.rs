@@ -369,7 +369,7 @@ impl Marigold {
                 self.scheduler.config.num_train_timesteps
             )));
         }
-        if res == 0 || res % f != 0 {
+        if res == 0 || !res.is_multiple_of(f) {
             return Err(EstimateError::Input(format!(
                 "processing resolution {res}: must be a positive multiple of {f}"
             )));

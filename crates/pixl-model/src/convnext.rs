@@ -19,9 +19,9 @@
 use crate::config::Config;
 use crate::layers::{conv2d, Conv};
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Conv2dConfig, Linear, VarBuilder};
+use candle_nn::{Conv2dConfig, VarBuilder};
 use pixl_nn::fused;
-use pixl_nn::{DepthwiseConv2d, LayerNorm, LayerNorm2d, Mlp};
+use pixl_nn::{DepthwiseConv2d, LayerNorm, LayerNorm2d, Linear, Mlp};
 
 /// ConvNeXt block: `x + gamma ⊙ mlp(norm(dwconv7(x)))` (channels-last inside).
 #[derive(Clone, Debug)]
@@ -40,6 +40,11 @@ impl ConvNextBlock {
             mlp: Mlp::new(dim, 4 * dim, dim, vb.pp("mlp"))?,
             gamma: vb.get_with_hints(dim, "gamma", candle_nn::Init::Const(layer_scale_init))?,
         })
+    }
+
+    /// The MLP in 8 bits where the CPU allows; returns how many layers.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        self.mlp.quantize_int8()
     }
 }
 
@@ -97,6 +102,16 @@ pub struct ConvNextEncoder {
 }
 
 impl ConvNextEncoder {
+    /// Every linear layer (the blocks' MLPs, `proj`) in 8 bits where the CPU allows and the
+    /// layer is wide enough ([`Linear::quantize_int8`]); returns how many.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        let mut n = usize::from(self.proj.quantize_int8()?);
+        for block in self.stages.iter_mut().flat_map(|s| s.blocks.iter_mut()) {
+            n += block.quantize_int8()?;
+        }
+        Ok(n)
+    }
+
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Self> {
         let c = &cfg.cond_encoder;
         let eps = cfg.norm_eps;
@@ -127,7 +142,7 @@ impl ConvNextEncoder {
             stages.push(Stage { downsample, blocks });
         }
         let norm = LayerNorm::new(c.dims[3], eps, vb.pp("norm"))?;
-        let proj = candle_nn::linear(c.dims[3], cfg.dim, vb.pp("proj"))?;
+        let proj = Linear::load(c.dims[3], cfg.dim, vb.pp("proj"))?;
         Ok(Self {
             stem_conv,
             stem_norm,

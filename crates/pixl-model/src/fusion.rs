@@ -22,6 +22,11 @@ impl Fusion {
         })
     }
 
+    /// The MLP in 8 bits where the CPU allows; returns how many layers.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        self.mlp.quantize_int8()
+    }
+
     pub fn forward(&self, src_tokens: &Tensor, cond_tokens: &Tensor) -> Result<Tensor> {
         if src_tokens.dims() != cond_tokens.dims() {
             candle_core::bail!(

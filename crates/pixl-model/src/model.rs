@@ -69,6 +69,19 @@ impl PixlRelight {
         &self.cfg
     }
 
+    /// Switches inference on the CPU to 8-bit matrix products for the linear layers of the
+    /// encoders, the fusion and the trunk ([`pixl_nn::int8`]: weights per output channel,
+    /// activations per token, AVX-512 VNNI), leaving convolutions, attention and norms in f32.
+    /// Returns how many layers were quantized: 0 where the CPU has no kernel (everything stays
+    /// f32). Refused for a network being trained. See `BENCHMARKS.md` for its speed and its
+    /// error against f32.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        Ok(self.src_encoder.quantize_int8()?
+            + self.cond_encoder.quantize_int8()?
+            + self.fuse.quantize_int8()?
+            + self.trunk.quantize_int8()?)
+    }
+
     /// The dtype the network computes in.
     pub fn dtype(&self) -> DType {
         self.dtype

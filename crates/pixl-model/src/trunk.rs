@@ -29,6 +29,11 @@ pub struct Trunk {
 }
 
 impl Trunk {
+    /// Every block's linear layers in 8 bits where the CPU allows; returns how many.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        self.blocks.iter_mut().map(Block::quantize_int8).sum()
+    }
+
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Self> {
         let t = &cfg.trunk;
         let init = candle_nn::Init::Randn { mean: 0.0, stdev: 0.02 };

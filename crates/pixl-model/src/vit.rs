@@ -16,9 +16,9 @@
 use crate::config::Config;
 use crate::layers::{conv2d, Conv};
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Conv2dConfig, Linear, VarBuilder};
+use candle_nn::{Conv2dConfig, VarBuilder};
 use pixl_nn::fused::{self, Act};
-use pixl_nn::{LayerNorm, Mlp, Rope2d};
+use pixl_nn::{LayerNorm, Linear, Mlp, Rope2d};
 
 /// Rotary embedding for the patch tokens of a sequence whose first `prefix` tokens (registers)
 /// are left unrotated.
@@ -37,17 +37,22 @@ pub struct Attention {
 
 impl Attention {
     pub fn new(dim: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
-        let qkv = candle_nn::linear(dim, 3 * dim, vb.pp("qkv"))?;
-        let proj = candle_nn::linear(dim, dim, vb.pp("proj"))?;
+        let qkv = Linear::load(dim, 3 * dim, vb.pp("qkv"))?;
+        let proj = Linear::load(dim, dim, vb.pp("proj"))?;
         Ok(Self { qkv, proj, heads })
+    }
+
+    /// 8-bit `qkv` and `proj` where the CPU allows ([`Linear::quantize_int8`]); returns how many.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        Ok(usize::from(self.qkv.quantize_int8()?) + usize::from(self.proj.quantize_int8()?))
     }
 
     /// `(B, N, d)` → `(B, N, d)`; RoPE rotates queries and keys when given. On the CPU in f32
     /// the head split and the rotation are one pass ([`fused::attention_qkv_rope`]).
     pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
-        let qkv = fused::linear(xs, &self.qkv, Act::None)?;
+        let qkv = self.qkv.forward_act(xs, Act::None)?;
         let out = fused::attention_qkv_rope(&qkv, self.heads, rope.map(|r| (r.rope, r.prefix)))?;
-        fused::linear(&out, &self.proj, Act::None)
+        self.proj.forward_act(&out, Act::None)
     }
 }
 
@@ -68,6 +73,12 @@ impl Block {
             norm2: LayerNorm::new(dim, eps, vb.pp("norm2"))?,
             mlp: Mlp::new(dim, mlp_ratio * dim, dim, vb.pp("mlp"))?,
         })
+    }
+
+    /// The attention's and the MLP's linear layers in 8 bits where the CPU allows; returns how
+    /// many.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        Ok(self.attn.quantize_int8()? + self.mlp.quantize_int8()?)
     }
 
     pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
@@ -109,6 +120,11 @@ impl VitEncoder {
             dim: cfg.dim,
             pos_grid: v.pos_grid,
         })
+    }
+
+    /// Every block's linear layers in 8 bits where the CPU allows; returns how many.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        self.blocks.iter_mut().map(Block::quantize_int8).sum()
     }
 
     /// The position embedding resized to a `(gh, gw)` grid, `(1, gh·gw, d)`.

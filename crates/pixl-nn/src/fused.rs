@@ -404,6 +404,17 @@ pub fn add_act(xs: &Tensor, ys: &Tensor, act: Act) -> Result<Tensor> {
     xs.contiguous()?.apply_op2_no_bwd(&ys.contiguous()?, &op)
 }
 
+/// `v = act(v)` over `out`, in parallel (the vectorised GELU for [`Act::Gelu`]).
+pub(crate) fn act_in_place(out: &mut [f32], act: Act) {
+    if act == Act::None {
+        return;
+    }
+    out.par_chunks_mut(CHUNK).for_each(|c| match act {
+        Act::Gelu => crate::fastmath::gelu_in_place(c),
+        _ => c.iter_mut().for_each(|v| *v = act.apply(*v)),
+    });
+}
+
 /// `act(xs · Wᵀ + b)` for a candle `Linear` over the last dim of `xs`, on any number of leading
 /// dims. With no gradient needed, on the CPU in f32: the output rows are filled with the bias,
 /// one parallel GEMM over all rows adds `xs · Wᵀ` to them in place (reading `W` as stored, no
@@ -479,10 +490,7 @@ pub fn linear(xs: &Tensor, layer: &candle_nn::Linear, act: Act) -> Result<Tensor
     }
     if act != Act::None {
         let _t = crate::profile::span("bias + activation");
-        out.par_chunks_mut(CHUNK).for_each(|c| match act {
-            Act::Gelu => crate::fastmath::gelu_in_place(c),
-            _ => c.iter_mut().for_each(|v| *v = act.apply(*v)),
-        });
+        act_in_place(&mut out, act);
     }
     let mut out_dims = lead.to_vec();
     out_dims.push(n);
@@ -744,7 +752,7 @@ impl CustomOp1 for SplitHeads<'_> {
         let h = self.heads;
         let d = c3 / (3 * h);
         if let Some((cos, sin, prefix)) = self.rope {
-            if d % 4 != 0 || prefix > n || cos.len() != (n - prefix) * d || sin.len() != cos.len() {
+            if !d.is_multiple_of(4) || prefix > n || cos.len() != (n - prefix) * d || sin.len() != cos.len() {
                 candle_core::bail!(
                     "RoPE tables of {} values for {} rotated tokens of head dim {d}",
                     cos.len(),

@@ -10,6 +10,7 @@
 //! - [`norm`] — layer norm (last dim) and channel-first layer norm for ConvNeXt.
 //! - [`ops`] — softmax, bilinear resize, GELU.
 //! - [`rope`] — 2D rotary position embedding.
+//! - [`linear`] — a candle `Linear` with the fused f32 path and an optional 8-bit one.
 //! - [`mlp`] — Linear–GELU–Linear.
 //! - [`conv3x3`] — 3×3 convolution as L2-sized im2col tiles, one GEMM each, for inference.
 //! - [`dwconv`] — depthwise k×k convolution with its own forward and backward kernels.
@@ -20,6 +21,8 @@
 //!   convolution (GEMMs in place over bias-filled outputs), the qkv head split with RoPE, and
 //!   channels-first/last copies, for inference only (the model layers call them when no
 //!   gradient is needed).
+//! - [`int8`] — 8-bit linear layers (weights per channel, activations per row, AVX-512 VNNI) for
+//!   faster CPU inference where the CPU has them.
 //! - [`profile`] — wall time by operation kind, off unless switched on.
 //! - [`testing`] — seeded test tensors and an f64 finite-difference gradient check.
 pub mod attention;
@@ -28,6 +31,8 @@ pub mod conv3x3;
 pub mod dwconv;
 pub mod fastmath;
 pub mod fused;
+pub mod int8;
+pub mod linear;
 pub mod mlp;
 pub mod norm;
 pub mod ops;
@@ -37,6 +42,7 @@ pub mod testing;
 
 pub use attention::attention;
 pub use dwconv::{depthwise_conv2d, DepthwiseConv2d};
+pub use linear::Linear;
 pub use mlp::Mlp;
 pub use norm::{LayerNorm, LayerNorm2d};
 pub use rope::Rope2d;

@@ -1,9 +1,11 @@
 //! `Linear(in → hidden) – GELU – Linear(hidden → out)`, weights `fc1.*`, `fc2.*` (timm naming).
-//! Each linear goes through [`crate::fused::linear`]: with no gradient needed on the CPU, the
-//! bias and the GELU are one parallel pass after the matmul.
-use crate::fused::{self, Act};
+//! Each linear is a [`crate::Linear`]: with no gradient needed on the CPU, the bias and the GELU
+//! are one parallel pass after the matmul, and the matmuls can run in 8 bits
+//! ([`Mlp::quantize_int8`]).
+use crate::fused::Act;
+use crate::Linear;
 use candle_core::{Module, Result, Tensor};
-use candle_nn::{Linear, VarBuilder};
+use candle_nn::VarBuilder;
 
 #[derive(Clone, Debug)]
 pub struct Mlp {
@@ -14,15 +16,20 @@ pub struct Mlp {
 impl Mlp {
     pub fn new(in_dim: usize, hidden: usize, out_dim: usize, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
-            fc1: candle_nn::linear(in_dim, hidden, vb.pp("fc1"))?,
-            fc2: candle_nn::linear(hidden, out_dim, vb.pp("fc2"))?,
+            fc1: Linear::load(in_dim, hidden, vb.pp("fc1"))?,
+            fc2: Linear::load(hidden, out_dim, vb.pp("fc2"))?,
         })
+    }
+
+    /// [`Linear::quantize_int8`] on both layers; returns how many were quantized.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        Ok(usize::from(self.fc1.quantize_int8()?) + usize::from(self.fc2.quantize_int8()?))
     }
 }
 
 impl Module for Mlp {
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let hidden = fused::linear(xs, &self.fc1, Act::Gelu)?;
-        fused::linear(&hidden, &self.fc2, Act::None)
+        let hidden = self.fc1.forward_act(xs, Act::Gelu)?;
+        self.fc2.forward_act(&hidden, Act::None)
     }
 }

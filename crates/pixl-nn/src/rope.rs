@@ -16,7 +16,7 @@ impl Rope2d {
     /// Tables for `grid_h × grid_w` tokens with `head_dim` channels per head (a multiple of 4);
     /// `base` sets the frequencies `base^(-i / (head_dim/4))` (e.g. 100 for patch grids).
     pub fn new(head_dim: usize, grid_h: usize, grid_w: usize, base: f64, device: &Device) -> Result<Self> {
-        if head_dim % 4 != 0 {
+        if !head_dim.is_multiple_of(4) {
             candle_core::bail!("2D RoPE needs a head dimension divisible by 4, got {head_dim}");
         }
         let q = head_dim / 4;

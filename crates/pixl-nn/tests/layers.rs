@@ -385,8 +385,8 @@ fn mlp_gradients_and_value() -> Result<()> {
     let w2 = uniform((o, hdim), -1.0, 1.0, 25, &cpu())?;
     let b2 = uniform(o, -1.0, 1.0, 26, &cpu())?;
     let mlp = |t: &[Tensor]| Mlp {
-        fc1: Linear::new(t[1].clone(), Some(t[2].clone())),
-        fc2: Linear::new(t[3].clone(), Some(t[4].clone())),
+        fc1: pixl_nn::Linear::new(Linear::new(t[1].clone(), Some(t[2].clone()))),
+        fc2: pixl_nn::Linear::new(Linear::new(t[3].clone(), Some(t[4].clone()))),
     };
     let inputs = [x, w1, b1, w2, b2];
     // Value against a direct evaluation: fc2(gelu(fc1(x))).

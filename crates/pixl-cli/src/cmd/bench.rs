@@ -59,6 +59,9 @@ pub struct ModelArgs {
     pub size: (usize, usize),
     #[arg(long, value_enum, default_value_t = DtypeArg::F32)]
     pub dtype: DtypeArg,
+    /// 8-bit matrix products in the linear layers (CPU f32 with AVX-512 VNNI).
+    #[arg(long)]
+    pub int8: bool,
     #[command(flatten)]
     pub run: RunArgs,
 }
@@ -163,7 +166,18 @@ fn bench_model(args: ModelArgs, ctx: &Ctx) -> anyhow::Result<()> {
     let cfg = Config::from_name_or_file(&args.config)?;
     let device = crate::device::parse_device(&args.run.device)?;
     let dtype: DType = args.dtype.into();
-    let model = pixl_model::build_inference(&cfg, 0, dtype, &device)?;
+    let mut model = pixl_model::build_inference(&cfg, 0, dtype, &device)?;
+    let int8_layers = if args.int8 {
+        if !device.is_cpu() || dtype != DType::F32 {
+            anyhow::bail!("--int8 is a CPU f32 option");
+        }
+        match model.quantize_int8()? {
+            0 => anyhow::bail!("--int8: this CPU has no AVX-512 VNNI"),
+            n => n,
+        }
+    } else {
+        0
+    };
     let (w, h) = args.size;
     let mut rng = Rng::new(1);
     let (src, ct) = (
@@ -180,16 +194,22 @@ fn bench_model(args: ModelArgs, ctx: &Ctx) -> anyhow::Result<()> {
         let out = serde_json::json!({
             "config": args.config, "params": cfg.param_count(), "width": w, "height": h,
             "dtype": format!("{:?}", args.dtype).to_lowercase(), "device": args.run.device,
+            "int8_layers": int8_layers,
             "threads": candle_core::utils::get_num_threads(),
             "timing": timing,
         });
         ctx.print_json(&out)?;
     } else {
         ctx.say(format!(
-            "{} ({:.1} M params), {w}x{h}, {:?}, {}: {}",
+            "{} ({:.1} M params), {w}x{h}, {:?}{}, {}: {}",
             args.config,
             cfg.param_count() as f64 / 1e6,
             args.dtype,
+            if args.int8 {
+                format!(", {int8_layers} int8 layers")
+            } else {
+                String::new()
+            },
             args.run.device,
             timing.describe()
         ));

@@ -94,6 +94,11 @@ pub struct Args {
     /// Compute dtype of the network.
     #[arg(long, value_enum, default_value_t = super::bench::DtypeArg::F32)]
     pub dtype: super::bench::DtypeArg,
+    /// 8-bit matrix products in the network's linear layers (CPU with AVX-512 VNNI; elsewhere a
+    /// warning and f32): about 1.5x faster end to end, within ~40 dB of the f32 result
+    /// (BENCHMARKS.md).
+    #[arg(long)]
+    pub int8: bool,
     /// Device for the network: cpu, or cuda[:N] (needs a CUDA build: scripts/cuda-setup.sh; `pixl doctor` lists devices).
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -214,9 +219,13 @@ fn load_network(
     weights: Option<&Path>,
     dtype: DType,
     device: &candle_core::Device,
+    int8: bool,
 ) -> anyhow::Result<Network> {
+    if int8 && (!device.is_cpu() || dtype != DType::F32) {
+        bail!("--int8 is a CPU f32 option: drop --device or --dtype bf16, or drop --int8");
+    }
     let sp = spinner(ctx, "loading the weights");
-    let (cfg, model, name) = match weights {
+    let (cfg, mut model, name) = match weights {
         Some(w) => {
             let (cfg, model) = pixl_model::load(w, device, dtype)?;
             (cfg, model, w.display().to_string())
@@ -226,6 +235,12 @@ fn load_network(
             (cfg, model, BUNDLED_NAME.to_string())
         }
     };
+    if int8 {
+        match model.quantize_int8()? {
+            0 => tracing::warn!("--int8: this CPU has no AVX-512 VNNI; the network runs in f32"),
+            n => tracing::info!("--int8: {n} linear layers quantized to 8 bits"),
+        }
+    }
     sp.finish_and_clear();
     tracing::info!(
         "weights: {name} ({} parameters, patch {})",
@@ -439,7 +454,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
 fn run_with_intrinsics(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()> {
     let ct_path = args.intrinsics.as_deref().unwrap_or(Path::new(""));
     let device = crate::device::parse_device(&args.device)?;
-    let net = load_network(ctx, args.weights.as_deref(), args.dtype.into(), &device)?;
+    let net = load_network(ctx, args.weights.as_deref(), args.dtype.into(), &device, args.int8)?;
     let photo = read_photo(ctx, photo_path)?;
     let size = (photo.width, photo.height);
     let work = fullres::working_size(size.0, size.1, args.max_side);
@@ -579,7 +594,7 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
         pixl_core::output::check_output_dir(dir, args.force, KEPT, &inputs)?;
     }
     let device = crate::device::parse_device(&args.device)?;
-    let net = load_network(ctx, args.weights.as_deref(), args.dtype.into(), &device)?;
+    let net = load_network(ctx, args.weights.as_deref(), args.dtype.into(), &device, args.int8)?;
     let photo = read_photo(ctx, photo_path)?;
     let size = (photo.width, photo.height);
     let budget = check_budget(args, &net, size, 12 + 8)?;

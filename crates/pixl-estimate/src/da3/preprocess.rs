@@ -78,7 +78,7 @@ impl ProcessPlan {
             nearest_multiple(bounded.0, PATCH).max(1),
             nearest_multiple(bounded.1, PATCH).max(1),
         );
-        if processed.0 % PATCH != 0 || processed.1 % PATCH != 0 {
+        if !processed.0.is_multiple_of(PATCH) || !processed.1.is_multiple_of(PATCH) {
             return Err(EstimateError::Input(format!(
                 "photo {width}x{height} is too elongated for process_res {process_res}: its short side \
                  becomes {} px, under half a {PATCH}-px patch",

@@ -433,7 +433,7 @@ impl TextConfig {
             layer_norm_eps: f64_of(&o, "layer_norm_eps", 1e-5)?,
             activation,
         };
-        if cfg.num_attention_heads == 0 || cfg.hidden_size % cfg.num_attention_heads != 0 {
+        if cfg.num_attention_heads == 0 || !cfg.hidden_size.is_multiple_of(cfg.num_attention_heads) {
             return Err("`num_attention_heads` must divide `hidden_size`".into());
         }
         if cfg.max_position_embeddings < 2 {
