@@ -22,7 +22,8 @@
 #
 # usage: scripts/bench-vs-pytorch.sh [--configs tiny,small,paper] [--size WxH] [--threads T]
 #                                    [--rounds N] [--warmups W] [--runs R]
-#                                    [--parity-size WxH] [--tol X] [--parity-only] [--work DIR]
+#                                    [--parity-size WxH] [--tol X] [--parity-only] [--int8]
+#                                    [--work DIR]
 #   --configs      comma-separated presets (default small)
 #   --size         timed input size WIDTHxHEIGHT (default 512x512)
 #   --threads      threads for both: RAYON_NUM_THREADS for pixl, torch.set_num_threads (and
@@ -32,6 +33,10 @@
 #   --parity-size  size of the parity check (default 200x136)
 #   --tol          parity tolerance on the max abs difference (default 1e-4)
 #   --parity-only  steps 1 and 2 only (no timing, no table)
+#   --int8         time both sides with 8-bit linear layers: `pixl bench model --int8` (AVX-512
+#                  VNNI; layers with >= 128 inputs) against PyTorch's dynamic quantization of
+#                  every nn.Linear (`torch.ao.quantization.quantize_dynamic`, qint8); parity is
+#                  still checked in f32
 #   --work         folder for weights, inputs and outputs (default: a temporary folder, removed)
 # env:
 #   PIXL_BIN          a pixl binary to use; else `cargo build --release -p pixl-cli` is run
@@ -57,6 +62,7 @@ PARITY_SIZE=200x136
 TOL=1e-4
 WORK=""
 PARITY_ONLY=""
+INT8=""
 while [ $# -gt 0 ]; do
   case "$1" in
     --configs) CONFIGS=$2; shift 2 ;;
@@ -68,6 +74,7 @@ while [ $# -gt 0 ]; do
     --parity-size) PARITY_SIZE=$2; shift 2 ;;
     --tol) TOL=$2; shift 2 ;;
     --parity-only) PARITY_ONLY=1; shift ;;
+    --int8) INT8=--int8; shift ;;
     --work) WORK=$2; shift 2 ;;
     -h|--help) sed -n '2,/^set -euo/p' "$0" | sed '$d; s/^# \{0,1\}//'; exit 0 ;;
     *) echo "unknown argument $1 (see --help)" >&2; exit 2 ;;
@@ -153,11 +160,11 @@ for cfg in "${CONFIG_LIST[@]}"; do
   for r in $(seq 1 "$ROUNDS"); do
     echo "   round $r/$ROUNDS: pixl" >&2
     RAYON_NUM_THREADS=$THREADS with_rss "$WORK/$cfg-pixl-$r.rss" \
-      "$PIXL_BIN" -q bench model --config "$cfg" --size "$SIZE" --dtype f32 \
+      "$PIXL_BIN" -q bench model --config "$cfg" --size "$SIZE" --dtype f32 $INT8 \
       --warmups "$WARMUPS" --runs "$RUNS" --json > "$WORK/$cfg-pixl-$r.json"
     echo "   round $r/$ROUNDS: torch" >&2
     OMP_NUM_THREADS=$THREADS MKL_NUM_THREADS=$THREADS with_rss "$WORK/$cfg-torch-$r.rss" \
-      "$PYTHON" "$TORCH_PY" time --weights "$WORK/$cfg.safetensors" --size "$SIZE" --threads "$THREADS" \
+      "$PYTHON" "$TORCH_PY" time --weights "$WORK/$cfg.safetensors" --size "$SIZE" --threads "$THREADS" $INT8 \
       --warmups "$WARMUPS" --runs "$RUNS" --json > "$WORK/$cfg-torch-$r.json"
   done
   rm -f "$WORK/$cfg.safetensors"

@@ -692,6 +692,10 @@ def cmd_time(args) -> None:
         model = load_model(args.weights)
     else:
         model = PixlRelight(preset(args.config)).eval()  # PyTorch's default init; values do not matter for timing
+    if args.int8:
+        # PyTorch's dynamic 8-bit quantization (fbgemm/x86): every nn.Linear, weights per tensor,
+        # activations per call; the counterpart of `pixl bench model --int8`.
+        model = torch.ao.quantization.quantize_dynamic(model, {nn.Linear}, dtype=torch.qint8)
     w, h = parse_size(args.size)
     gen = torch.Generator().manual_seed(1)
     src = torch.rand(1, 3, h, w, generator=gen)
@@ -706,7 +710,7 @@ def cmd_time(args) -> None:
             runs.append((time.perf_counter() - t) * 1e3)
             del out
     result = {
-        "impl": "torch", "torch": torch.__version__, "config": args.config if args.weights is None else str(args.weights),
+        "impl": "torch", "torch": torch.__version__, "int8": args.int8, "config": args.config if args.weights is None else str(args.weights),
         "width": w, "height": h, "threads": torch.get_num_threads(), "warmups": args.warmups, "runs_ms": runs,
         "median_ms": statistics.median(runs), "min_ms": min(runs), "mean_ms": statistics.fmean(runs),
         "peak_rss_mb": peak_rss_mb(),
@@ -765,6 +769,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--warmups", type=int, default=2)
     p.add_argument("--runs", type=int, default=5)
     p.add_argument("--threads", type=int, default=torch.get_num_threads())
+    p.add_argument("--int8", action="store_true", help="dynamic 8-bit quantization of every nn.Linear")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_time)
 

@@ -4,8 +4,8 @@
 //! ([`pixl_nn::profile`]), the rest being what ran outside the instrumented ops. Where the
 //! time goes, for optimisation work.
 //!
-//! `cargo run --release -p pixl-model --example stage_times -- small 512` (threads:
-//! `RAYON_NUM_THREADS`).
+//! `cargo run --release -p pixl-model --example stage_times -- small 512 [int8]` (threads:
+//! `RAYON_NUM_THREADS`; `int8`: the linear layers in 8 bits, `PixlRelight::quantize_int8`).
 use std::collections::BTreeMap;
 use std::time::Instant;
 
@@ -20,7 +20,11 @@ fn main() -> Result<()> {
     let side: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(512);
     let cfg = Config::preset(preset).map_err(|e| candle_core::Error::Msg(e.to_string()))?;
     let dev = Device::Cpu;
-    let model = build_inference(&cfg, 0, DType::F32, &dev).map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+    let mut model = build_inference(&cfg, 0, DType::F32, &dev).map_err(|e| candle_core::Error::Msg(e.to_string()))?;
+    if args.get(2).map(String::as_str) == Some("int8") {
+        let n = model.quantize_int8()?;
+        println!("{n} linear layers in 8 bits");
+    }
     let src = Tensor::rand(0f32, 1.0, (1, 3, side, side), &dev)?;
     let ct = Tensor::rand(0f32, 1.0, (1, 9, side, side), &dev)?;
     let mut totals: BTreeMap<String, f64> = BTreeMap::new();

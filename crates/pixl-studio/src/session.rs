@@ -52,6 +52,9 @@ pub struct StudioConfig {
     pub max_pixels: usize,
     /// Network weights (safetensors); `None`: the bundled demo weights.
     pub weights: Option<PathBuf>,
+    /// 8-bit linear layers in the network where the CPU has AVX-512 VNNI
+    /// ([`pixl_model::PixlRelight::quantize_int8`]); f32 elsewhere.
+    pub int8: bool,
     /// Where "save" and "export" write.
     pub out_dir: PathBuf,
     /// A monocular depth estimator, used for photos given without a depth map.
@@ -71,6 +74,7 @@ impl Default for StudioConfig {
             max_upload_bytes: 64 << 20,
             max_pixels: 40_000_000,
             weights: None,
+            int8: false,
             out_dir: PathBuf::from("studio-out"),
             estimator: None,
         }
@@ -208,7 +212,7 @@ impl Studio {
             s.side = s.side.clamp(8, config.work_side);
         }
         let dev = candle_core::Device::Cpu;
-        let (model_name, (_, model)) = match &config.weights {
+        let (model_name, (_, mut model)) = match &config.weights {
             Some(w) => (
                 w.display().to_string(),
                 pixl_model::load(w, &dev, candle_core::DType::F32)?,
@@ -218,6 +222,12 @@ impl Studio {
                 pixl_model::load_bytes(Path::new(BUNDLED_NAME), BUNDLED_WEIGHTS, &dev, candle_core::DType::F32)?,
             ),
         };
+        if config.int8 {
+            match model.quantize_int8()? {
+                0 => tracing::warn!("int8: this CPU has no AVX-512 VNNI; the network runs in f32"),
+                n => tracing::info!("int8: {n} linear layers quantized to 8 bits"),
+            }
+        }
         let workdir = tempfile::Builder::new()
             .prefix("pixl-studio-")
             .tempdir()

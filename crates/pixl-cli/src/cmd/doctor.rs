@@ -36,7 +36,8 @@ fn simd_features() -> Vec<&'static str> {
             "avx512f",
             "avx512bw",
             "avx512vl",
-            "avx512bf16"
+            "avx512bf16",
+            "avx512vnni"
         );
     }
     #[cfg(target_arch = "aarch64")]

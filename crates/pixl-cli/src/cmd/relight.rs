@@ -95,8 +95,8 @@ pub struct Args {
     #[arg(long, value_enum, default_value_t = super::bench::DtypeArg::F32)]
     pub dtype: super::bench::DtypeArg,
     /// 8-bit matrix products in the network's linear layers (CPU with AVX-512 VNNI; elsewhere a
-    /// warning and f32): about 1.5x faster end to end, within ~40 dB of the f32 result
-    /// (BENCHMARKS.md).
+    /// warning and f32): the network 1.6-1.8x faster at the small and paper sizes, its output
+    /// within 59-70 dB PSNR of f32 (BENCHMARKS.md).
     #[arg(long)]
     pub int8: bool,
     /// Device for the network: cpu, or cuda[:N] (needs a CUDA build: scripts/cuda-setup.sh; `pixl doctor` lists devices).

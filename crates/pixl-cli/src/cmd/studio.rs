@@ -35,6 +35,10 @@ pub struct Args {
     /// Network weights (default: the bundled demo weights).
     #[arg(long)]
     pub weights: Option<PathBuf>,
+    /// 8-bit matrix products in the network's linear layers (CPU with AVX-512 VNNI; elsewhere
+    /// a warning and f32): a faster relit preview, see `pixl relight --int8`.
+    #[arg(long)]
+    pub int8: bool,
     /// Where "save scene" and the exports write.
     #[arg(long, default_value = "studio-out")]
     pub out: PathBuf,
@@ -78,6 +82,7 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         ],
         fov_y_deg: args.fov,
         weights: args.weights.clone(),
+        int8: args.int8,
         out_dir: args.out.clone(),
         ..StudioConfig::default()
     };
