@@ -96,7 +96,10 @@ fn taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32, f32)> {
         .collect()
 }
 
-/// [`resize_bilinear`] for a CPU f32 tensor with positive sizes, parallel over output rows.
+/// [`resize_bilinear`] for a CPU f32 tensor with positive sizes, parallel over planes: each
+/// input row a plane's output reads is resized horizontally once, `hx = wx0·r[x0] + wx1·r[x1]`,
+/// then each output row blends two of those, `wy0·hx(y0) + wy1·hx(y1)` (PyTorch's arithmetic,
+/// in its order; the blend runs over contiguous rows, so it vectorises).
 fn resize_bilinear_cpu(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
     let (b, c, ih, iw) = xs.dims4()?;
     let xs = xs.contiguous()?;
@@ -105,18 +108,45 @@ fn resize_bilinear_cpu(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
     {
         let (storage, layout) = xs.storage_and_layout();
         let src = crate::fused::storage_slice(&storage, layout, "bilinear resize")?;
-        out.par_chunks_mut(w).with_min_len(8).enumerate().for_each(|(r, row)| {
-            let (plane, y) = (r / h, r % h);
-            let (y0, y1, wy0, wy1) = ty[y];
-            let base = plane * ih * iw;
-            let (r0, r1) = (
-                &src[base + y0 * iw..base + (y0 + 1) * iw],
-                &src[base + y1 * iw..base + (y1 + 1) * iw],
-            );
-            for (d, &(x0, x1, wx0, wx1)) in row.iter_mut().zip(&tx) {
-                *d = wy0 * (wx0 * r0[x0] + wx1 * r0[x1]) + wy1 * (wx0 * r1[x0] + wx1 * r1[x1]);
-            }
-        });
+        // Input rows the output reads (every row when upsampling; some when shrinking).
+        let mut used = vec![false; ih];
+        for &(y0, y1, _, _) in &ty {
+            (used[y0], used[y1]) = (true, true);
+        }
+        // Planes split into bands of output rows when there are fewer planes than threads.
+        let bands = rayon::current_num_threads().div_ceil(b * c).clamp(1, h);
+        let band = h.div_ceil(bands);
+        out.par_chunks_mut(h * w)
+            .enumerate()
+            .flat_map(|(plane, out_plane)| {
+                out_plane
+                    .par_chunks_mut(band * w)
+                    .enumerate()
+                    .map(move |(t, chunk)| (plane, t * band, chunk))
+            })
+            .for_each(|(plane, y_start, chunk)| {
+                let rows = chunk.len() / w;
+                let input = &src[plane * ih * iw..(plane + 1) * ih * iw];
+                let (first, last) = (ty[y_start].0, ty[y_start + rows - 1].1);
+                let mut hx = vec![0f32; (last + 1 - first) * w];
+                for (y, row) in hx.chunks_mut(w).enumerate() {
+                    let y = first + y;
+                    if !used[y] {
+                        continue;
+                    }
+                    let r = &input[y * iw..(y + 1) * iw];
+                    for (d, &(x0, x1, wx0, wx1)) in row.iter_mut().zip(&tx) {
+                        *d = wx0 * r[x0] + wx1 * r[x1];
+                    }
+                }
+                for (i, row) in chunk.chunks_mut(w).enumerate() {
+                    let (y0, y1, wy0, wy1) = ty[y_start + i];
+                    let (a, bb) = (&hx[(y0 - first) * w..][..w], &hx[(y1 - first) * w..][..w]);
+                    for ((d, &p), &q) in row.iter_mut().zip(a).zip(bb) {
+                        *d = wy0 * p + wy1 * q;
+                    }
+                }
+            });
     }
     Tensor::from_vec(out, (b, c, h, w), xs.device())
 }

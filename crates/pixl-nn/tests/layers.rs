@@ -397,3 +397,33 @@ fn mlp_gradients_and_value() -> Result<()> {
     assert!(max_abs_diff(&y, &want)? < 1e-12);
     assert_gradients("mlp", |t| mlp(t).forward(&t[0]), &inputs, TOL)
 }
+
+/// The f32 CPU kernel (planes in parallel, a plane cut into bands of rows when there are fewer
+/// planes than threads) against the f64 interpolation matrices `Wy · X · Wxᵀ` on the same f32
+/// values: up, down, odd sizes, one plane and several, 1 and 3 threads.
+#[test]
+fn resize_f32_kernel_matches_the_interpolation_matrices() -> Result<()> {
+    for (shape, (h, w)) in [
+        ((1, 1, 7, 5), (13, 9)),
+        ((1, 1, 5, 8), (16, 16)),
+        ((2, 3, 9, 6), (4, 5)),
+        ((1, 2, 3, 3), (10, 1)),
+    ] {
+        let x = uniform(shape, -1.0, 1.0, 21, &cpu())?.to_dtype(DType::F32)?;
+        let (_, _, ih, iw) = shape;
+        let wy = interp_matrix(ih, h, &cpu())?.to_dtype(DType::F64)?;
+        let wx = interp_matrix(iw, w, &cpu())?.to_dtype(DType::F64)?;
+        let want = wy.broadcast_matmul(&x.to_dtype(DType::F64)?.broadcast_matmul(&wx.t()?)?)?;
+        for threads in [1, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool");
+            let got = pool.install(|| resize_bilinear(&x, h, w))?;
+            assert_eq!(got.dtype(), DType::F32);
+            let d = max_abs_diff(&got, &want)?;
+            assert!(d < 1e-6, "{shape:?} -> {h}x{w}, {threads} threads: {d}");
+        }
+    }
+    Ok(())
+}
