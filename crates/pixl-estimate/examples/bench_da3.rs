@@ -3,8 +3,11 @@
 //!
 //! ```text
 //! RAYON_NUM_THREADS=8 cargo run --release -p pixl-estimate --example bench_da3 -- \
-//!     [--size 504x378] [--size 504x504] [--iters 5] [--warmup 1] [--tiny]
+//!     [--size 504x378] [--size 504x504] [--iters 5] [--warmup 1] [--tiny] [--int8]
 //! ```
+//! `--int8` times the backbone's linear layers as 8-bit products (`Da3::quantize_int8`) and prints
+//! how far the depth moves from the f32 forward on the same input (max and RMS relative
+//! difference).
 //! Prints, per size, the median / min / max wall time of `--iters` forwards after `--warmup`
 //! untimed ones, then the process's peak resident memory (`VmHWM`). `--tiny` uses the test
 //! fixtures' tiny architecture instead (a smoke test of the harness).
@@ -19,6 +22,7 @@ struct Args {
     iters: usize,
     warmup: usize,
     tiny: bool,
+    int8: bool,
 }
 
 fn parse_args() -> Result<Args, String> {
@@ -27,6 +31,7 @@ fn parse_args() -> Result<Args, String> {
         iters: 5,
         warmup: 1,
         tiny: false,
+        int8: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -45,6 +50,7 @@ fn parse_args() -> Result<Args, String> {
             "--iters" => a.iters = value()?.parse().map_err(|_| "--iters: expected a number")?,
             "--warmup" => a.warmup = value()?.parse().map_err(|_| "--warmup: expected a number")?,
             "--tiny" => a.tiny = true,
+            "--int8" => a.int8 = true,
             other => return Err(format!("unknown argument {other}")),
         }
     }
@@ -90,11 +96,39 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let t0 = Instant::now();
     let vb = candle_nn::VarBuilder::from_tensors(random_weights(&cfg, &dev)?, DType::F32, &dev);
-    let model = Da3::from_var_builder(cfg, vb, &dev)?;
+    let mut model = Da3::from_var_builder(cfg, vb, &dev)?;
+    // The f32 depth of each size's input, for the 8-bit comparison.
+    let mut f32_depth = Vec::new();
+    if args.int8 {
+        for &(w, h) in &args.sizes {
+            let xs = Tensor::randn(0f32, 1.0, (1, 3, h, w), &dev)?;
+            f32_depth.push((xs.clone(), model.forward(&xs)?));
+        }
+        let n = model.quantize_int8()?;
+        eprintln!("{n} linear layers in 8 bits");
+    }
     let threads = candle_core::utils::get_num_threads();
     eprintln!("built in {:.1} s; {threads} threads", t0.elapsed().as_secs_f64());
-    for (w, h) in args.sizes {
-        let xs = Tensor::randn(0f32, 1.0, (1, 3, h, w), &dev)?;
+    for (i, (w, h)) in args.sizes.into_iter().enumerate() {
+        let xs = match f32_depth.get(i) {
+            Some((xs, want)) => {
+                let got = model.forward(xs)?;
+                let (g, r) = (
+                    got.0.flatten_all()?.to_vec1::<f32>()?,
+                    want.0.flatten_all()?.to_vec1::<f32>()?,
+                );
+                let rel: Vec<f64> = g
+                    .iter()
+                    .zip(&r)
+                    .map(|(a, b)| ((a - b) / b.abs().max(1e-6)).abs() as f64)
+                    .collect();
+                let rms = (rel.iter().map(|v| v * v).sum::<f64>() / rel.len() as f64).sqrt();
+                let max = rel.iter().cloned().fold(0.0, f64::max);
+                println!("int8 depth vs f32 {w}x{h}: relative difference max {max:.4}, RMS {rms:.5}");
+                xs.clone()
+            }
+            None => Tensor::randn(0f32, 1.0, (1, 3, h, w), &dev)?,
+        };
         for _ in 0..args.warmup {
             model.forward(&xs)?;
         }

@@ -154,6 +154,14 @@ impl Da3 {
         &self.device
     }
 
+    /// The backbone's linear layers as 8-bit products on CPUs with AVX-512 VNNI
+    /// ([`pixl_nn::int8`]); returns how many (0 elsewhere). Measured on random weights of the
+    /// released architecture only (`examples/bench_da3 --int8`): the released weights' depth
+    /// under it has not been checked.
+    pub fn quantize_int8(&mut self) -> Result<usize, EstimateError> {
+        Ok(self.backbone.quantize_int8()?)
+    }
+
     /// Backbone features for a preprocessed `(B, 3, H, W)` batch: four `(B, N, C)` tensors.
     pub fn forward_features(&self, xs: &Tensor) -> Result<Vec<Tensor>, EstimateError> {
         Ok(self.backbone.forward_features(xs)?)

@@ -24,7 +24,7 @@ use super::resize::bicubic_scale;
 use candle_core::{DType, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 use pixl_nn::fused::{add_scaled_rows, attention_qkv, bias_act_rows, Act, Vector};
-use pixl_nn::LayerNorm;
+use pixl_nn::{LayerNorm, Linear};
 
 /// LayerNorm eps of the blocks (`Block(ln_eps=1e-6)`).
 pub const BLOCK_LN_EPS: f64 = 1e-6;
@@ -33,59 +33,31 @@ pub const FINAL_LN_EPS: f64 = 1e-5;
 /// `DinoVisionTransformer.interpolate_offset`.
 pub const INTERPOLATE_OFFSET: f64 = 0.1;
 
-/// `nn.Linear` (`weight` `(out, in)`, `bias`) with a fused bias + activation.
-#[derive(Clone, Debug)]
-struct Dense {
-    weight: Tensor,
-    bias: Vector,
-}
-
-impl Dense {
-    fn new(in_dim: usize, out_dim: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            weight: vb.get((out_dim, in_dim), "weight")?,
-            bias: Vector::new(vb.get(out_dim, "bias")?)?,
-        })
-    }
-
-    /// `act(xs·Wᵀ + b)` on `(…, in)`.
-    fn forward(&self, xs: &Tensor, act: Act) -> Result<Tensor> {
-        let dims = xs.dims().to_vec();
-        let (lead, in_dim) = dims.split_at(dims.len() - 1);
-        let rows: usize = lead.iter().product();
-        let ys = xs.reshape((rows, in_dim[0]))?.matmul(&self.weight.t()?)?;
-        let ys = bias_act_rows(&ys, &self.bias, act)?;
-        let mut shape = lead.to_vec();
-        shape.push(self.bias.len());
-        ys.reshape(shape)
-    }
-}
-
 /// Multi-head self-attention with a fused `qkv` projection.
 #[derive(Clone, Debug)]
 struct Attention {
-    qkv: Dense,
-    proj: Dense,
+    qkv: Linear,
+    proj: Linear,
     heads: usize,
 }
 
 impl Attention {
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let qkv = self.qkv.forward(xs, Act::None)?; // (B, N, 3C)
-        self.proj.forward(&attention_qkv(&qkv, self.heads)?, Act::None)
+        let qkv = self.qkv.forward_act(xs, Act::None)?; // (B, N, 3C)
+        self.proj.forward_act(&attention_qkv(&qkv, self.heads)?, Act::None)
     }
 }
 
 /// `Linear – GELU(erf) – Linear`.
 #[derive(Clone, Debug)]
 struct Mlp {
-    fc1: Dense,
-    fc2: Dense,
+    fc1: Linear,
+    fc2: Linear,
 }
 
 impl Mlp {
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        self.fc2.forward(&self.fc1.forward(xs, Act::Gelu)?, Act::None)
+        self.fc2.forward_act(&self.fc1.forward_act(xs, Act::Gelu)?, Act::None)
     }
 }
 
@@ -107,18 +79,33 @@ impl Block {
         Ok(Self {
             norm1: LayerNorm::new(c, BLOCK_LN_EPS, vb.pp("norm1"))?,
             attn: Attention {
-                qkv: Dense::new(c, 3 * c, vb.pp("attn").pp("qkv"))?,
-                proj: Dense::new(c, c, vb.pp("attn").pp("proj"))?,
+                qkv: Linear::load(c, 3 * c, vb.pp("attn").pp("qkv"))?,
+                proj: Linear::load(c, c, vb.pp("attn").pp("proj"))?,
                 heads: cfg.net().num_heads,
             },
             ls1: Vector::new(vb.pp("ls1").get(c, "gamma")?)?,
             norm2: LayerNorm::new(c, BLOCK_LN_EPS, vb.pp("norm2"))?,
             mlp: Mlp {
-                fc1: Dense::new(c, hidden, vb.pp("mlp").pp("fc1"))?,
-                fc2: Dense::new(hidden, c, vb.pp("mlp").pp("fc2"))?,
+                fc1: Linear::load(c, hidden, vb.pp("mlp").pp("fc1"))?,
+                fc2: Linear::load(hidden, c, vb.pp("mlp").pp("fc2"))?,
             },
             ls2: Vector::new(vb.pp("ls2").get(c, "gamma")?)?,
         })
+    }
+
+    /// `qkv`, `proj`, `fc1`, `fc2` in 8 bits where the CPU allows; returns how many.
+    fn quantize_int8(&mut self) -> Result<usize> {
+        let layers = [
+            &mut self.attn.qkv,
+            &mut self.attn.proj,
+            &mut self.mlp.fc1,
+            &mut self.mlp.fc2,
+        ];
+        let mut n = 0;
+        for l in layers {
+            n += usize::from(l.quantize_int8()?);
+        }
+        Ok(n)
     }
 
     fn forward(&self, xs: &Tensor) -> Result<Tensor> {
@@ -146,6 +133,12 @@ pub struct Backbone {
 }
 
 impl Backbone {
+    /// Every block's linear layers as 8-bit products where the CPU allows
+    /// ([`pixl_nn::Linear::quantize_int8`]); returns how many.
+    pub fn quantize_int8(&mut self) -> Result<usize> {
+        self.blocks.iter_mut().map(Block::quantize_int8).sum()
+    }
+
     /// Reads `model.backbone.pretrained.*` under `vb` (already prefixed).
     pub fn new(cfg: &Da3Config, vb: VarBuilder) -> Result<Self> {
         let n = cfg.net();
