@@ -351,23 +351,30 @@ fn int8_relights_close_to_f32_and_refuses_bf16() {
         0.15 + 0.6 * ((x as f32 * 0.11 + c as f32).sin() * 0.5 + 0.5) * (y as f32 / h as f32)
     });
     pixl_core::io::write_image(&src, &photo).unwrap();
-    let run = |name: &str, extra: &[&str]| {
+    // `pixl relight` of the photo under the C_T with `extra` flags, into `name`.
+    let relight = |name: &str, extra: &[&str]| {
         let out = dir.path().join(name);
-        let mut args = vec![
-            "relight",
-            "--source",
-            s(&src),
-            "--intrinsics",
-            s(&ct_path),
-            "--out",
-            s(&out),
-        ];
-        args.extend_from_slice(extra);
-        ok(&args);
+        let result = {
+            let mut args = vec![
+                "relight",
+                "--source",
+                s(&src),
+                "--intrinsics",
+                s(&ct_path),
+                "--out",
+                s(&out),
+            ];
+            args.extend_from_slice(extra);
+            pixl(&args)
+        };
+        (result, out)
+    };
+    let read = |(result, out): (std::process::Output, std::path::PathBuf)| {
+        assert!(result.status.success(), "{}", String::from_utf8_lossy(&result.stderr));
         pixl_core::io::read_rgb(&out).unwrap()
     };
-    let f32_out = run("f32.exr", &[]);
-    let int8_out = run("int8.exr", &["--int8"]);
+    let f32_out = read(relight("f32.exr", &[]));
+    let int8_out = read(relight("int8.exr", &["--int8"]));
     let mse = f32_out
         .data
         .iter()
@@ -381,18 +388,7 @@ fn int8_relights_close_to_f32_and_refuses_bf16() {
     } else {
         assert_eq!(mse, 0.0);
     }
-    let refused = pixl(&[
-        "relight",
-        "--source",
-        s(&src),
-        "--intrinsics",
-        s(&ct_path),
-        "--out",
-        s(&dir.path().join("x.exr")),
-        "--int8",
-        "--dtype",
-        "bf16",
-    ]);
+    let (refused, _) = relight("x.exr", &["--int8", "--dtype", "bf16"]);
     assert!(!refused.status.success());
     assert!(String::from_utf8_lossy(&refused.stderr).contains("--int8"));
 }
