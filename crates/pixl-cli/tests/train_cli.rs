@@ -351,3 +351,70 @@ fn synth_coarse_albedo_photo_textures_with_the_source_image() {
     let md = std::fs::read_to_string(report.join("results.md")).unwrap();
     assert!(md.contains("textured with the source image"), "{md}");
 }
+
+/// `--coarse-albedo estimated` textures each reconstruction with the diffuse colour plus an
+/// estimator's errors: not the `diffcol` texture of the same scenes, but close to it
+/// (correlated), and recorded in the manifest.
+#[test]
+fn synth_coarse_albedo_estimated_is_diffcol_with_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = |albedo: &str| {
+        let out = dir.path().join(albedo);
+        let o = pixl(&[
+            "-q",
+            "synth",
+            "--scenes",
+            "1",
+            "--lights",
+            "2",
+            "--size",
+            "24",
+            "--spp",
+            "2",
+            "--coarse",
+            "--coarse-albedo",
+            albedo,
+            "-o",
+            out.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        out
+    };
+    let (exact, estimated) = (run("diffcol"), run("estimated"));
+    for k in 0..2 {
+        let tex = |root: &std::path::Path| {
+            pixl_core::io::read_rgb(&root.join(format!("scene0000/coarse_from_light_{k}/albedo.png"))).unwrap()
+        };
+        let (a, b) = (tex(&exact), tex(&estimated));
+        let n = a.data.len() as f64;
+        let mean = |v: &[f32]| v.iter().map(|&x| x as f64).sum::<f64>() / n;
+        let (ma, mb) = (mean(&a.data), mean(&b.data));
+        let cov: f64 = a
+            .data
+            .iter()
+            .zip(&b.data)
+            .map(|(&x, &y)| (x as f64 - ma) * (y as f64 - mb))
+            .sum::<f64>()
+            / n;
+        let sd = |v: &[f32], m: f64| (v.iter().map(|&x| (x as f64 - m).powi(2)).sum::<f64>() / n).sqrt();
+        let corr = cov / (sd(&a.data, ma) * sd(&b.data, mb));
+        let diff = a
+            .data
+            .iter()
+            .zip(&b.data)
+            .map(|(x, y)| (x - y).abs() as f64)
+            .sum::<f64>()
+            / n;
+        assert!(
+            diff > 0.005,
+            "light_{k}: the estimated texture equals DiffCol (mean |diff| {diff})"
+        );
+        assert!(
+            corr > 0.5,
+            "light_{k}: the estimated texture is unrelated to DiffCol (corr {corr})"
+        );
+    }
+    let manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(estimated.join("scenes.json")).unwrap()).unwrap();
+    assert_eq!(manifest["coarse_albedo"], "estimated");
+}

@@ -105,6 +105,9 @@ pub enum CoarseAlbedo {
     /// The source image itself (`pixl reconstruct` without `--albedo`): no estimator, the source's
     /// shading and shadows stay in the texture.
     Photo,
+    /// `DiffCol` with an estimator's errors drawn per source: part of the source's shading left
+    /// in, blur, a tint (`pixl_train::synth::estimated`).
+    Estimated,
 }
 
 /// How a synthetic set shows its linear renders as images.

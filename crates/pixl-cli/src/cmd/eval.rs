@@ -157,6 +157,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         let texture = match albedo {
             Some(pixl_data::CoarseAlbedo::Diffcol) => " textured with the source's DiffCol pass",
             Some(pixl_data::CoarseAlbedo::Photo) => " textured with the source image",
+            Some(pixl_data::CoarseAlbedo::Estimated) => " textured with an estimated-style albedo",
             None => "",
         };
         format!("{} (C_T from coarse reconstructions{texture})", args.dataset)

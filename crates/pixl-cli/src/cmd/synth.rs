@@ -57,8 +57,10 @@ pub struct Args {
     #[arg(long)]
     pub coarse: bool,
     /// With --coarse: the reconstruction's albedo texture — `diffcol` (the source render's
-    /// diffuse colour pass: a perfect albedo estimator) or `photo` (the source image itself, as
-    /// `pixl reconstruct` does without --albedo: no estimator, source shading stays in it).
+    /// diffuse colour pass: a perfect albedo estimator), `photo` (the source image itself, as
+    /// `pixl reconstruct` does without --albedo: no estimator, source shading stays in it) or
+    /// `estimated` (the diffuse colour with an estimator's errors drawn per source: 10-40 % of
+    /// the source's shading left in, a blur of up to 5 px, a tint of up to 12 % per channel).
     #[arg(long, value_enum, default_value_t = CoarseAlbedoArg::Diffcol, requires = "coarse")]
     pub coarse_albedo: CoarseAlbedoArg,
     /// Output folder (created if missing; a non-empty one only with --force).
@@ -108,6 +110,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         coarse_albedo: match args.coarse_albedo {
             CoarseAlbedoArg::Diffcol => pixl_data::CoarseAlbedo::Diffcol,
             CoarseAlbedoArg::Photo => pixl_data::CoarseAlbedo::Photo,
+            CoarseAlbedoArg::Estimated => pixl_data::CoarseAlbedo::Estimated,
         },
     };
     let pb = ctx.progress((args.scenes * args.lights) as u64, "synth");
@@ -161,4 +164,5 @@ pub enum StyleArg {
 pub enum CoarseAlbedoArg {
     Diffcol,
     Photo,
+    Estimated,
 }

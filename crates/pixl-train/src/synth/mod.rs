@@ -41,6 +41,7 @@ use pixl_render::{Film, RenderOptions, Scene};
 use std::path::Path;
 
 pub mod boxes;
+pub mod estimated;
 pub mod photo;
 pub mod textures;
 
@@ -245,15 +246,29 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
         for (k, (source_scene, source_film, source_image)) in lit.iter().enumerate() {
             let recon_dir = dir.join(format!("coarse_from_light_{k}"));
             made.create_dir_all(&recon_dir)?;
-            let photo = match opts.coarse_albedo {
+            let estimated_texture;
+            let texture = match opts.coarse_albedo {
                 CoarseAlbedo::Diffcol => None,
                 CoarseAlbedo::Photo => Some(source_image),
+                CoarseAlbedo::Estimated => {
+                    let pass = |p: &str| {
+                        source_film
+                            .pass_ref(p)
+                            .ok_or_else(|| TrainError::Other(format!("{name}/light_{k}: the render has no {p} pass")))
+                    };
+                    let mut rng = pixl_core::Rng::for_stream(opts.seed, &[0xA1BE_D0, i as u64, k as u64]);
+                    let errors = estimated::EstimatorErrors::draw(&mut rng);
+                    estimated_texture =
+                        estimated::estimated_albedo_srgb(pass("DiffCol")?, pass("DiffDir")?, pass("DiffInd")?, &errors)
+                            .ok_or_else(|| TrainError::Other(format!("{name}/light_{k}: passes of different sizes")))?;
+                    Some(&estimated_texture)
+                }
             };
             let mut relit = pixl_render::reconstruct::coarse_scene_textured(
                 source_film,
                 source_scene,
                 &pixl_render::reconstruct::estimated_material(),
-                photo,
+                texture,
                 &recon_dir,
             )
             .map_err(|e| TrainError::Other(format!("coarse reconstruction of {name}/light_{k}: {e}")))?;
