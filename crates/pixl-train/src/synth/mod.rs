@@ -256,7 +256,7 @@ pub fn generate(opts: &SynthOptions, out: &Path, progress: &dyn Fn(usize, usize)
                             .pass_ref(p)
                             .ok_or_else(|| TrainError::Other(format!("{name}/light_{k}: the render has no {p} pass")))
                     };
-                    let mut rng = pixl_core::Rng::for_stream(opts.seed, &[0xA1BE_D0, i as u64, k as u64]);
+                    let mut rng = pixl_core::Rng::for_stream(opts.seed, &[0x00A1_BED0, i as u64, k as u64]);
                     let errors = estimated::EstimatorErrors::draw(&mut rng);
                     estimated_texture =
                         estimated::estimated_albedo_srgb(pass("DiffCol")?, pass("DiffDir")?, pass("DiffInd")?, &errors)
