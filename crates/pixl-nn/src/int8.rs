@@ -195,6 +195,13 @@ impl Int8Linear {
         if rows == 0 || self.n == 0 {
             return;
         }
+        if self.k == 0 {
+            // No inputs: every output is its bias.
+            out[..rows * self.n]
+                .chunks_mut(self.n)
+                .for_each(|row| row.copy_from_slice(&self.bias[..self.n]));
+            return;
+        }
         let q = QuantizedRows::new(x, rows, self.k, self.kp);
         let threads = rayon::current_num_threads().max(1);
         let panels = self.n.div_ceil(NR);
