@@ -67,6 +67,10 @@ pub struct Args {
     /// Network dtype: f32 or bf16.
     #[arg(long, default_value = "f32")]
     pub dtype: String,
+    /// Evaluate the network with 8-bit linear layers (CPU f32 with AVX-512 VNNI), as
+    /// `pixl relight --int8` runs it.
+    #[arg(long, requires = "weights")]
+    pub int8: bool,
     /// Timing protocol: untimed warm-ups.
     #[arg(long, default_value_t = pixl_eval::DEFAULT_WARMUPS)]
     pub warmups: usize,
@@ -130,9 +134,17 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
 
     let mut methods: Vec<Box<dyn Method>> = Vec::new();
     if let Some(w) = &args.weights {
-        let (_cfg, model) = pixl_model::checkpoint::load(w, &device, dtype)?;
+        let (_cfg, mut model) = pixl_model::checkpoint::load(w, &device, dtype)?;
+        if args.int8 {
+            if !device.is_cpu() || dtype != DType::F32 {
+                anyhow::bail!("--int8 is a CPU f32 option: drop --device or --dtype bf16, or drop --int8");
+            }
+            if model.quantize_int8()? == 0 {
+                anyhow::bail!("--int8: no layer quantized (this CPU has no AVX-512 VNNI, or every layer is narrower than {} inputs)", pixl_nn::linear::INT8_MIN_INPUTS);
+            }
+        }
         methods.push(Box::new(ModelMethod {
-            label: "Ours".into(),
+            label: if args.int8 { "Ours (int8)" } else { "Ours" }.into(),
             model,
             device: device.clone(),
         }));
