@@ -9,6 +9,15 @@
 use anyhow::Context as _;
 use candle_core::Device;
 
+/// `--int8` (8-bit linear layers, `PixlRelight::quantize_int8`) runs only on the CPU in f32:
+/// an error naming the flags to change otherwise.
+pub fn check_int8(device: &Device, dtype: candle_core::DType) -> anyhow::Result<()> {
+    if !device.is_cpu() || dtype != candle_core::DType::F32 {
+        anyhow::bail!("--int8 is a CPU f32 option: drop --device or --dtype bf16, or drop --int8");
+    }
+    Ok(())
+}
+
 /// One CUDA device as the driver describes it.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct CudaDeviceInfo {

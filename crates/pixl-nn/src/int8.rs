@@ -322,6 +322,7 @@ fn quantize_row(row: &[f32], dst: &mut [u8]) -> (f32, i32) {
 }
 
 /// Scale and zero point from a row's range (see the module notes).
+#[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
 fn params_from_range(lo: f32, hi: f32) -> (f32, i32) {
     let t = if hi > lo { (hi - lo) / 255.0 } else { 1.0 };
     let zp = (-lo / t).round_ties_even().clamp(0.0, 255.0) as i32;

@@ -168,9 +168,7 @@ fn bench_model(args: ModelArgs, ctx: &Ctx) -> anyhow::Result<()> {
     let dtype: DType = args.dtype.into();
     let mut model = pixl_model::build_inference(&cfg, 0, dtype, &device)?;
     let int8_layers = if args.int8 {
-        if !device.is_cpu() || dtype != DType::F32 {
-            anyhow::bail!("--int8 is a CPU f32 option");
-        }
+        crate::device::check_int8(&device, dtype)?;
         match model.quantize_int8()? {
             0 => anyhow::bail!("--int8: this CPU has no AVX-512 VNNI"),
             n => n,

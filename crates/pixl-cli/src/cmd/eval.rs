@@ -136,9 +136,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     if let Some(w) = &args.weights {
         let (_cfg, mut model) = pixl_model::checkpoint::load(w, &device, dtype)?;
         if args.int8 {
-            if !device.is_cpu() || dtype != DType::F32 {
-                anyhow::bail!("--int8 is a CPU f32 option: drop --device or --dtype bf16, or drop --int8");
-            }
+            crate::device::check_int8(&device, dtype)?;
             if model.quantize_int8()? == 0 {
                 anyhow::bail!("--int8: no layer quantized (this CPU has no AVX-512 VNNI, or every layer is narrower than {} inputs)", pixl_nn::linear::INT8_MIN_INPUTS);
             }

@@ -221,8 +221,8 @@ fn load_network(
     device: &candle_core::Device,
     int8: bool,
 ) -> anyhow::Result<Network> {
-    if int8 && (!device.is_cpu() || dtype != DType::F32) {
-        bail!("--int8 is a CPU f32 option: drop --device or --dtype bf16, or drop --int8");
+    if int8 {
+        crate::device::check_int8(device, dtype)?;
     }
     let sp = spinner(ctx, "loading the weights");
     let (cfg, mut model, name) = match weights {
