@@ -31,6 +31,17 @@
 //! bit-reversed value — from more to less significant digits of the coordinate, what a
 //! nested-uniform scramble needs.
 //!
+//! The pixel position is the one exception to "uniform": its net is shifted digit-wise (XOR)
+//! so that every pixel's first sample lies at the pixel centre (within 2^-12 of a pixel), as
+//! Cycles places it. The first
+//! `2^k` samples are still a (0, k, 2)-net, anchored at the centre rather than placed at
+//! random, so a pixel's estimate is a net quadrature of its box filter rather than unbiased
+//! for every seed. Why: a 1-spp image is then point-sampled at the centres, whose error
+//! against the converged (box-filtered) image is a second-order one (the centre is the
+//! footprint's mean), not the first-order one of a random position: on the demo scene at 1
+//! spp, RMSE² of the colour passes and Env 2.3–3.3× lower, at 4 spp within ±12 % of the
+//! unshifted net, from 16 spp equal or lower (BENCHMARKS, "Native renderer noise").
+//!
 //! Numbers depend only on `(seed, pixel, sample, dimension)`, so images are bit-identical for a
 //! seed whatever the thread count or how samples are grouped into packets. Cost: a vertex's
 //! block is computed for the 16 lanes of a packet at once in vector code; on the render
@@ -233,8 +244,13 @@ impl SobolPacket {
             dir: [[0.0; LANES]; 2],
             roulette: [0.0; LANES],
         };
+        // The pixel position: the pixel's net XOR-shifted so that its first sample (index 0) sits
+        // at the pixel centre in both coordinates (module docs).
+        let keys = DimKeys::new(p.key, dim::CAMERA);
+        let first = keys.shuffled(0);
+        let centre = [centre_shift(keys.first(first)), centre_shift(keys.second(first))];
         let [cx, cy] = &mut p.camera;
-        lanes2d(&p.rindex, &DimKeys::new(p.key, dim::CAMERA), cx, cy);
+        lanes2d(&p.rindex, &keys, centre, cx, cy);
         p
     }
 
@@ -256,10 +272,10 @@ impl SobolPacket {
         let keys = |k| DimKeys::new(self.key, dim::at(depth, k));
         lanes1d(&self.rindex, &keys(dim::LIGHT_PICK), &mut self.pick);
         let [lx, ly] = &mut self.light;
-        lanes2d(&self.rindex, &keys(dim::LIGHT_POS), lx, ly);
+        lanes2d(&self.rindex, &keys(dim::LIGHT_POS), [0, 0], lx, ly);
         lanes1d(&self.rindex, &keys(dim::LOBE), &mut self.lobe);
         let [dx, dy] = &mut self.dir;
-        lanes2d(&self.rindex, &keys(dim::BSDF_DIR), dx, dy);
+        lanes2d(&self.rindex, &keys(dim::BSDF_DIR), [0, 0], dx, dy);
         if depth >= 3 {
             lanes1d(&self.rindex, &keys(dim::ROULETTE), &mut self.roulette);
         }
@@ -289,15 +305,33 @@ fn lanes1d(rindex: &[u32; LANES], keys: &DimKeys, out: &mut [f32; LANES]) {
     }
 }
 
-/// Both coordinates of dimension `keys` for every lane.
+/// Both coordinates of dimension `keys` for every lane, each XOR-ed with its `shift` (a digital
+/// shift: it maps the elementary intervals of every level onto one another, so nets stay nets).
 #[inline(always)]
-fn lanes2d(rindex: &[u32; LANES], keys: &DimKeys, x: &mut [f32; LANES], y: &mut [f32; LANES]) {
+fn lanes2d(rindex: &[u32; LANES], keys: &DimKeys, shift: [u32; 2], x: &mut [f32; LANES], y: &mut [f32; LANES]) {
     for j in 0..LANES {
         let i = keys.shuffled(rindex[j]);
-        x[j] = to_unit(keys.first(i));
-        y[j] = to_unit(keys.second(i));
+        x[j] = to_unit(keys.first(i) ^ shift[0]);
+        y[j] = to_unit(keys.second(i) ^ shift[1]);
     }
 }
+
+/// The digital shift that moves coordinate `first` (a 32-bit binary fraction) to the centre:
+/// its leading [`CENTRE_BITS`] digits become `1000…0`, the rest stay as scrambled, so the first
+/// sample lies in `[1/2, 1/2 + 2^-12)`. Not exactly at the centre: a camera ray through the
+/// exact centre of every pixel meets shared edges and vertices of meshes whose vertices sit on
+/// the pixel grid (a depth map's mesh seen from its own camera; a quad's diagonal through the
+/// image centre), where a ray leaving the surface can meet the neighbouring triangle at `t ≈ 0`.
+#[inline(always)]
+fn centre_shift(first: u32) -> u32 {
+    (first ^ HALF) & !(u32::MAX >> CENTRE_BITS)
+}
+
+/// One half as a 32-bit binary fraction.
+const HALF: u32 = 1 << 31;
+
+/// Leading digits of the pixel position that [`centre_shift`] sets.
+const CENTRE_BITS: u32 = 12;
 
 /// Dimension `dim` of sample `index` of pixel `pixel` as two 32-bit binary fractions (the
 /// per-sample form of what [`SobolPacket`] computes; its first coordinate is the 1-D value).
@@ -305,6 +339,15 @@ pub fn sobol_point(seed: u64, pixel: u64, index: u32, dim: u32) -> [u32; 2] {
     let keys = DimKeys::new(pixel_key(seed, pixel), dim);
     let i = keys.shuffled(index.reverse_bits());
     [keys.first(i), keys.second(i)]
+}
+
+/// The position inside pixel `pixel` of its sample `index` as two 32-bit binary fractions: the
+/// camera dimension's point, XOR-shifted so that sample 0 lies at the centre (module docs; the
+/// per-sample form of what [`SobolPacket::camera`] gives).
+pub fn pixel_position(seed: u64, pixel: u64, index: u32) -> [u32; 2] {
+    let first = sobol_point(seed, pixel, 0, dim::CAMERA);
+    let p = sobol_point(seed, pixel, index, dim::CAMERA);
+    [p[0] ^ centre_shift(first[0]), p[1] ^ centre_shift(first[1])]
 }
 
 /// The seeds of one dimension of one pixel: the index shuffle and each coordinate's scramble.
@@ -519,6 +562,37 @@ mod tests {
     }
 
     #[test]
+    fn pixel_positions_start_at_the_centre_and_stay_nets() {
+        // Sample 0 of every pixel is within 2^-12 of the centre (not exactly at it: its low
+        // digits still vary from pixel to pixel); the first 2^k positions are still a
+        // (0, k, 2)-net (a digital shift of the camera dimension's net), so each coordinate is
+        // stratified; and the shift is the same for all samples of a pixel, different between
+        // pixels (the second sample is not at one fixed place).
+        let (mut first, mut second) = (std::collections::HashSet::new(), std::collections::HashSet::new());
+        for seed in [0u64, 5] {
+            for pixel in [0u64, 1, 77, 1 << 33] {
+                let s0 = pixel_position(seed, pixel, 0);
+                for c in s0 {
+                    assert!(
+                        (0.5..0.5 + 1.0 / 4096.0).contains(&(c as f64 / 2f64.powi(32))),
+                        "{s0:?}"
+                    );
+                }
+                first.insert(s0);
+                for k in 0..=10u32 {
+                    let pts: Vec<[u32; 2]> = (0..1u32 << k).map(|i| pixel_position(seed, pixel, i)).collect();
+                    assert!(is_02_net(&pts), "seed {seed} pixel {pixel} N 2^{k}");
+                }
+                let s1 = pixel_position(seed, pixel, 1);
+                // With two samples the second lies in the opposite quadrant of the centre's cell.
+                assert!(s1[0] < HALF && s1[1] < HALF, "{s1:?}");
+                second.insert(s1);
+            }
+        }
+        assert_eq!((first.len(), second.len()), (8, 8));
+    }
+
+    #[test]
     fn packets_give_the_per_sample_points() {
         // What the integrator reads from a packet (lane j = sample s0 + j) is `sobol_point`
         // of that sample and dimension, for full and partial packets and every vertex block.
@@ -526,7 +600,7 @@ mod tests {
             let mut p = SobolPacket::start(seed, pixel, s0);
             let f = |i: u32, d: u32| point(seed, pixel, i, d);
             for j in 0..n {
-                assert_eq!(p.camera(j), f(s0 + j as u32, dim::CAMERA));
+                assert_eq!(p.camera(j), pixel_position(seed, pixel, s0 + j as u32).map(to_unit));
             }
             for depth in 0..6 {
                 p.begin_vertex(depth);
