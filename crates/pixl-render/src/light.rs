@@ -26,8 +26,8 @@
 //!   (hard edge for `blend = 0`), not renormalised to the cone.
 //! - Area: one-sided Lambertian, radiance `P·color / (π A)`, emitting along its direction; its
 //!   local X (`size`) is `normalize(d × Y)` (or +X when `d ∥ Y`), local Y is `(−d) × X`.
-//!   Sampled by area, except rectangles seen from a camera vertex closer than four half-diagonals,
-//!   sampled uniformly in the solid angle they subtend ([`SphericalRect`]).
+//!   Sampled by area, except rectangles seen from a camera vertex (unless they subtend under
+//!   1e-3 sr), sampled uniformly in the solid angle they subtend ([`SphericalRect`]).
 //! - Sun: irradiance `strength·color` on a surface facing it; with an angular diameter of at
 //!   least ~0.16° (Blender's default is 0.526°) a cone of uniform radiance `E / Ω` (`Ω = 2π(1 −
 //!   cos(angle/2))`, directions sampled uniformly in it), below that a delta light of
@@ -157,9 +157,8 @@ pub struct ShadingPoint {
     pub n: V3,
     /// Light from both sides of `n` can scatter (a transmission lobe): no cosine bound.
     pub two_sided: bool,
-    /// Sample nearby rectangular area lights by solid angle ([`SphericalRect`]; costlier per
-    /// sample, worth it where the light is seen directly: the integrator asks it at the camera
-    /// vertex).
+    /// Sample rectangular area lights by solid angle ([`SphericalRect`]; costlier per sample,
+    /// worth it where the light is seen directly: the integrator asks it at the camera vertex).
     pub solid_angle: bool,
 }
 
@@ -318,16 +317,23 @@ struct SphericalRect {
 }
 
 impl SphericalRect {
-    /// Area lights sampled by solid angle: rectangles seen from `o` closer than four times their
-    /// half-diagonal (farther, sampling by area is about as good and cheaper), with a solid angle
-    /// f32 resolves (≥ 1e-3 sr). The same rule decides the pdf of light and BSDF samples.
+    /// Area lights sampled by solid angle: every rectangle with a solid angle f32 resolves
+    /// (≥ 1e-3 sr; smaller ones, which sampling by area serves as well, are screened first by a
+    /// cheap bound), at any distance, as Cycles does. On the depth-mesh scene of the noise
+    /// benchmark, sampling by area beyond four half-diagonals left the 1-spp Diffuse Direct RMSE
+    /// 13 % above this rule's (7 % at 4 spp). The same rule decides the pdf of light and BSDF
+    /// samples.
     #[inline(always)]
     fn for_light(c: V3, ex: V3, ey: V3, frame: &RectFrame, disk: bool, o: V3) -> Option<SphericalRect> {
         if disk {
             return None;
         }
+        // Ω ≤ area / (d − r)² for a point at distance d from the centre of a rectangle whose
+        // corners lie within r of it: screened when that bound is under 1e-3 sr.
         let to = c - o;
-        if to.dot(to) > 16.0 * (ex.dot(ex) + ey.dot(ey)) {
+        let (d, r) = (to.dot(to).sqrt(), (ex.dot(ex) + ey.dot(ey)).sqrt());
+        let area = 4.0 * (ex.dot(ex) * ey.dot(ey)).sqrt();
+        if d > r && area < 1e-3 * (d - r) * (d - r) {
             return None;
         }
         SphericalRect::with_frame(o, c - ex - ey, frame).filter(|r| r.omega >= 1e-3)
