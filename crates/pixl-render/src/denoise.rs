@@ -154,7 +154,8 @@ mod tests {
     }
 
     /// On a grainy 2-spp render the filtered image is much closer to a 1024-spp reference than
-    /// the render itself (squared error 65 vs 109 when written), and its mean stays within 3 %
+    /// the render itself (squared error 61 vs 91 since rectangles are sampled by solid angle at
+    /// every distance; 65 vs 109 before), and its mean stays within 3 %
     /// of the reference's (the median of a skewed distribution sits below its mean: 1.4 % low
     /// here). (At many samples per pixel on so small an image the median's bias on the ball
     /// outweighs the noise it removes: it is for grainy images.)
@@ -176,7 +177,7 @@ mod tests {
             }
         }
         assert!(
-            e_filtered < 0.6 * e_noisy,
+            e_filtered < 0.75 * e_noisy,
             "squared error {e_filtered} vs unfiltered {e_noisy}"
         );
         assert!((m_f / m_ref - 1.0).abs() < 0.03, "mean ratio {}", m_f / m_ref);

@@ -195,7 +195,7 @@ impl Renderer {
         let mut sums = [PixelSum::default(); PACKET];
         // The samples' uniform numbers, lane j = sample s0 + j (each decision draws from its own
         // dimension; the live paths are at the same vertex).
-        let mut smp = PacketSampler::start(self.sampler, self.opts.seed, pixel, s0 as u32, n);
+        let mut smp = PacketSampler::start(self.sampler, self.opts.seed, pixel, s0 as u32, n, self.opts.spp);
         // Camera rays (lane = slot), one packet whatever their number; only the `n` samples of
         // this packet are traced (a low-spp render would otherwise pay for all PACKET lanes).
         let mut camera = Batch::new();

@@ -31,16 +31,15 @@
 //! bit-reversed value — from more to less significant digits of the coordinate, what a
 //! nested-uniform scramble needs.
 //!
-//! The pixel position is the one exception to "uniform": its net is shifted digit-wise (XOR)
-//! so that every pixel's first sample lies at the pixel centre (within 2^-12 of a pixel), as
-//! Cycles places it. The first
-//! `2^k` samples are still a (0, k, 2)-net, anchored at the centre rather than placed at
-//! random, so a pixel's estimate is a net quadrature of its box filter rather than unbiased
-//! for every seed. Why: a 1-spp image is then point-sampled at the centres, whose error
-//! against the converged (box-filtered) image is a second-order one (the centre is the
-//! footprint's mean), not the first-order one of a random position: on the demo scene at 1
-//! spp, RMSE² of the colour passes and Env 2.3–3.3× lower, at 4 spp within ±12 % of the
-//! unshifted net, from 16 spp equal or lower (BENCHMARKS, "Native renderer noise").
+//! One exception to "uniform": a render of **one** sample per pixel places it at the pixel
+//! centre (within 2^-12 of a pixel: the camera dimension's net digitally shifted, XOR, so
+//! that its first point lands there), as Cycles places its first sample. A 1-spp image is then
+//! point-sampled at the centres, whose error against the converged (box-filtered) image is of
+//! second order (the centre is the footprint's mean) rather than the first order of a random
+//! position: on the demo scene at 1 spp, RMSE² of the colour passes and Env 1.4–3.3× lower.
+//! With more samples the nets are left unshifted: anchoring one point of a 4- or 16-point net
+//! at the centre (a corner of its own cell) made the demo's colour passes up to 2× noisier at
+//! 512² (BENCHMARKS, "Native renderer noise").
 //!
 //! Numbers depend only on `(seed, pixel, sample, dimension)`, so images are bit-identical for a
 //! seed whatever the thread count or how samples are grouped into packets. Cost: a vertex's
@@ -117,9 +116,10 @@ macro_rules! dispatch {
 
 impl PacketSampler {
     #[inline(always)]
-    pub fn start(kind: Sampler, seed: u64, pixel: u64, s0: u32, n: usize) -> Self {
+    /// Samples `s0 .. s0 + n` of pixel `pixel` in a render of `spp` samples per pixel.
+    pub fn start(kind: Sampler, seed: u64, pixel: u64, s0: u32, n: usize, spp: u32) -> Self {
         match kind {
-            Sampler::Sobol => PacketSampler::Sobol(SobolPacket::start(seed, pixel, s0)),
+            Sampler::Sobol => PacketSampler::Sobol(SobolPacket::start(seed, pixel, s0, spp == 1)),
             Sampler::Independent => PacketSampler::Independent(IndependentPacket::start(seed, pixel, s0, n)),
         }
     }
@@ -233,7 +233,9 @@ pub struct SobolPacket {
 impl SobolPacket {
     /// All lanes are computed whatever the number of samples (vector code).
     #[inline(always)]
-    pub fn start(seed: u64, pixel: u64, s0: u32) -> Self {
+    /// `centred`: the pixel position's net shifted to put sample 0 at the pixel centre (for
+    /// 1-spp renders, module docs).
+    pub fn start(seed: u64, pixel: u64, s0: u32, centred: bool) -> Self {
         let mut p = SobolPacket {
             key: pixel_key(seed, pixel),
             rindex: std::array::from_fn(|j| s0.wrapping_add(j as u32).reverse_bits()),
@@ -244,13 +246,17 @@ impl SobolPacket {
             dir: [[0.0; LANES]; 2],
             roulette: [0.0; LANES],
         };
-        // The pixel position: the pixel's net XOR-shifted so that its first sample (index 0) sits
-        // at the pixel centre in both coordinates (module docs).
+        // The pixel position; centred: the pixel's net XOR-shifted so that its first sample
+        // (index 0) sits at the pixel centre in both coordinates (module docs).
         let keys = DimKeys::new(p.key, dim::CAMERA);
-        let first = keys.shuffled(0);
-        let centre = [centre_shift(keys.first(first)), centre_shift(keys.second(first))];
+        let shift = if centred {
+            let first = keys.shuffled(0);
+            [centre_shift(keys.first(first)), centre_shift(keys.second(first))]
+        } else {
+            [0, 0]
+        };
         let [cx, cy] = &mut p.camera;
-        lanes2d(&p.rindex, &keys, centre, cx, cy);
+        lanes2d(&p.rindex, &keys, shift, cx, cy);
         p
     }
 
@@ -341,12 +347,16 @@ pub fn sobol_point(seed: u64, pixel: u64, index: u32, dim: u32) -> [u32; 2] {
     [keys.first(i), keys.second(i)]
 }
 
-/// The position inside pixel `pixel` of its sample `index` as two 32-bit binary fractions: the
-/// camera dimension's point, XOR-shifted so that sample 0 lies at the centre (module docs; the
-/// per-sample form of what [`SobolPacket::camera`] gives).
-pub fn pixel_position(seed: u64, pixel: u64, index: u32) -> [u32; 2] {
-    let first = sobol_point(seed, pixel, 0, dim::CAMERA);
+/// The position inside pixel `pixel` of its sample `index` as two 32-bit binary fractions, in
+/// a render of `spp` samples per pixel: the camera dimension's point, XOR-shifted so that
+/// sample 0 lies at the centre when `spp` is 1 (module docs; the per-sample form of what
+/// [`SobolPacket::camera`] gives).
+pub fn pixel_position(seed: u64, pixel: u64, index: u32, spp: u32) -> [u32; 2] {
     let p = sobol_point(seed, pixel, index, dim::CAMERA);
+    if spp != 1 {
+        return p;
+    }
+    let first = sobol_point(seed, pixel, 0, dim::CAMERA);
     [p[0] ^ centre_shift(first[0]), p[1] ^ centre_shift(first[1])]
 }
 
@@ -562,16 +572,15 @@ mod tests {
     }
 
     #[test]
-    fn pixel_positions_start_at_the_centre_and_stay_nets() {
-        // Sample 0 of every pixel is within 2^-12 of the centre (not exactly at it: its low
-        // digits still vary from pixel to pixel); the first 2^k positions are still a
-        // (0, k, 2)-net (a digital shift of the camera dimension's net), so each coordinate is
-        // stratified; and the shift is the same for all samples of a pixel, different between
-        // pixels (the second sample is not at one fixed place).
-        let (mut first, mut second) = (std::collections::HashSet::new(), std::collections::HashSet::new());
+    fn one_sample_renders_sample_the_pixel_centre() {
+        // With one sample per pixel it lies within 2^-12 of the centre (not exactly at it: its
+        // low digits still vary from pixel to pixel); the shift that puts it there keeps the
+        // camera dimension's nets nets (digit-wise, tested up to 2^10 points); with more
+        // samples the positions are the unshifted net's.
+        let mut first = std::collections::HashSet::new();
         for seed in [0u64, 5] {
             for pixel in [0u64, 1, 77, 1 << 33] {
-                let s0 = pixel_position(seed, pixel, 0);
+                let s0 = pixel_position(seed, pixel, 0, 1);
                 for c in s0 {
                     assert!(
                         (0.5..0.5 + 1.0 / 4096.0).contains(&(c as f64 / 2f64.powi(32))),
@@ -580,16 +589,20 @@ mod tests {
                 }
                 first.insert(s0);
                 for k in 0..=10u32 {
-                    let pts: Vec<[u32; 2]> = (0..1u32 << k).map(|i| pixel_position(seed, pixel, i)).collect();
+                    let pts: Vec<[u32; 2]> = (0..1u32 << k).map(|i| pixel_position(seed, pixel, i, 1)).collect();
                     assert!(is_02_net(&pts), "seed {seed} pixel {pixel} N 2^{k}");
                 }
-                let s1 = pixel_position(seed, pixel, 1);
-                // With two samples the second lies in the opposite quadrant of the centre's cell.
-                assert!(s1[0] < HALF && s1[1] < HALF, "{s1:?}");
-                second.insert(s1);
+                for spp in [2u32, 4, 16] {
+                    for i in 0..spp {
+                        assert_eq!(
+                            pixel_position(seed, pixel, i, spp),
+                            sobol_point(seed, pixel, i, dim::CAMERA)
+                        );
+                    }
+                }
             }
         }
-        assert_eq!((first.len(), second.len()), (8, 8));
+        assert_eq!(first.len(), 8);
     }
 
     #[test]
@@ -597,11 +610,15 @@ mod tests {
         // What the integrator reads from a packet (lane j = sample s0 + j) is `sobol_point`
         // of that sample and dimension, for full and partial packets and every vertex block.
         for (seed, pixel, s0, n) in [(3u64, 17u64, 0u32, 16usize), (3, 17, 16, 16), (9, 4096, 32, 5)] {
-            let mut p = SobolPacket::start(seed, pixel, s0);
-            let f = |i: u32, d: u32| point(seed, pixel, i, d);
-            for j in 0..n {
-                assert_eq!(p.camera(j), pixel_position(seed, pixel, s0 + j as u32).map(to_unit));
+            for spp in [1u32, 64] {
+                let mut p = SobolPacket::start(seed, pixel, s0, spp == 1);
+                for j in 0..n {
+                    let want = pixel_position(seed, pixel, s0 + j as u32, spp).map(to_unit);
+                    assert_eq!(p.camera(j), want, "spp {spp}");
+                }
             }
+            let mut p = SobolPacket::start(seed, pixel, s0, false);
+            let f = |i: u32, d: u32| point(seed, pixel, i, d);
             for depth in 0..6 {
                 p.begin_vertex(depth);
                 for j in 0..n {
