@@ -370,8 +370,8 @@ impl SphericalRect {
         // normals n0 = (0, z0, −y0)/r0, n1 = (−z0, 0, x1)/r1, n2 = (0, −z0, y1)/r2,
         // n3 = (z0, 0, −x0)/r3 with r = √(z0² + e²) for the edge's coordinate e. The interior
         // angle at a corner is acos(−nᵢ·nᵢ₊₁), and those dot products reduce to one product of
-        // edge coordinates each; the solid angle is the angles' sum minus 2π. Written lane-wise
-        // over the four corners, so the square roots, divisions and arccosines run side by side.
+        // edge coordinates each; the solid angle is the angles' sum minus 2π. The four corners'
+        // square roots, divisions and arccosines are independent of one another.
         let z2 = z0 * z0;
         let inv_r = [y0, x1, y1, x0].map(|e| 1.0 / (z2 + e * e).sqrt());
         let num = [y0 * x1, -x1 * y1, x0 * y1, -x0 * y0];
@@ -427,9 +427,9 @@ impl SphericalRect {
 
 /// `acos(x)` for `x` in `[−1, 1]` as `√(1 − |x|)·P(|x|)` (mirrored for `x < 0`), `P` the
 /// degree-7 polynomial of Abramowitz & Stegun 4.4.46 (error ≤ 2e-8 in exact arithmetic; in
-/// `f32` within 5e-7 of the true value, tested; libm's `acosf` is within 2.2e-7): no branch on the argument's range and no
-/// call, so four of them vectorise (libm's `acosf` was the largest part of the spherical
-/// rectangle's setup).
+/// `f32` within 5e-7 of the true value, tested; libm's `acosf` is within 2.2e-7). Inline, with
+/// no call and no branch on the argument's range: libm's `acosf` was the largest part of the
+/// spherical rectangle's setup.
 #[inline(always)]
 fn acos_poly(x: f32) -> f32 {
     #[allow(clippy::excessive_precision)] // the published coefficients, as printed
