@@ -373,8 +373,26 @@ fn int8_relights_close_to_f32_and_refuses_bf16() {
         assert!(result.status.success(), "{}", String::from_utf8_lossy(&result.stderr));
         pixl_core::io::read_rgb(&out).unwrap()
     };
-    let f32_out = read(relight("f32.exr", &[]));
-    let int8_out = read(relight("int8.exr", &["--int8"]));
+    let f32_run = relight("f32.exr", &["--json"]);
+    let int8_run = relight("int8.exr", &["--int8", "--json"]);
+    // The plan counts the 8-bit copies beside the f32 weights: about a quarter of the quantized
+    // layers' f32 bytes, so more than nothing and less than a third of all the weights' bytes.
+    let planned = |run: &(std::process::Output, std::path::PathBuf)| {
+        let v: serde_json::Value = serde_json::from_slice(&run.0.stdout).expect("--json output");
+        v["planned_network_bytes"].as_u64().expect("planned_network_bytes")
+    };
+    let extra = planned(&int8_run) as i64 - planned(&f32_run) as i64;
+    let weight_bytes = 4 * pixl_model::Config::tiny().param_count() as i64;
+    if pixl_nn::int8::available() {
+        assert!(
+            extra > 0 && extra < weight_bytes / 3,
+            "8-bit copies planned at {extra} bytes"
+        );
+    } else {
+        assert_eq!(extra, 0);
+    }
+    let f32_out = read(f32_run);
+    let int8_out = read(int8_run);
     let mse = f32_out
         .data
         .iter()

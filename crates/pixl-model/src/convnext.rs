@@ -46,6 +46,10 @@ impl ConvNextBlock {
     pub fn quantize_int8(&mut self) -> Result<usize> {
         self.mlp.quantize_int8()
     }
+
+    pub fn int8_bytes(&self) -> usize {
+        self.mlp.int8_bytes()
+    }
 }
 
 /// Zero-pads a map narrower or shorter than the 7×7 kernel before the depthwise conv and crops
@@ -110,6 +114,16 @@ impl ConvNextEncoder {
             n += block.quantize_int8()?;
         }
         Ok(n)
+    }
+
+    pub fn int8_bytes(&self) -> usize {
+        let blocks: usize = self
+            .stages
+            .iter()
+            .flat_map(|s| s.blocks.iter())
+            .map(|b| b.int8_bytes())
+            .sum();
+        self.proj.int8_bytes() + blocks
     }
 
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Self> {

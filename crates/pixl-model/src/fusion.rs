@@ -27,6 +27,10 @@ impl Fusion {
         self.mlp.quantize_int8()
     }
 
+    pub fn int8_bytes(&self) -> usize {
+        self.mlp.int8_bytes()
+    }
+
     pub fn forward(&self, src_tokens: &Tensor, cond_tokens: &Tensor) -> Result<Tensor> {
         if src_tokens.dims() != cond_tokens.dims() {
             candle_core::bail!(

@@ -82,6 +82,16 @@ impl PixlRelight {
             + self.trunk.quantize_int8()?)
     }
 
+    /// Bytes the 8-bit copies of [`PixlRelight::quantize_int8`] hold besides the f32 weights
+    /// (about a quarter of the quantized layers' f32 bytes; 0 before quantizing). Not in
+    /// [`crate::fullres::plan_memory`], which plans the f32 network: add it.
+    pub fn int8_bytes(&self) -> u64 {
+        (self.src_encoder.int8_bytes()
+            + self.cond_encoder.int8_bytes()
+            + self.fuse.int8_bytes()
+            + self.trunk.int8_bytes()) as u64
+    }
+
     /// The dtype the network computes in.
     pub fn dtype(&self) -> DType {
         self.dtype

@@ -34,6 +34,10 @@ impl Trunk {
         self.blocks.iter_mut().map(Block::quantize_int8).sum()
     }
 
+    pub fn int8_bytes(&self) -> usize {
+        self.blocks.iter().map(Block::int8_bytes).sum()
+    }
+
     pub fn new(cfg: &Config, vb: VarBuilder) -> Result<Self> {
         let t = &cfg.trunk;
         let init = candle_nn::Init::Randn { mean: 0.0, stdev: 0.02 };

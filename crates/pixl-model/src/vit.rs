@@ -47,6 +47,10 @@ impl Attention {
         Ok(usize::from(self.qkv.quantize_int8()?) + usize::from(self.proj.quantize_int8()?))
     }
 
+    pub fn int8_bytes(&self) -> usize {
+        self.qkv.int8_bytes() + self.proj.int8_bytes()
+    }
+
     /// `(B, N, d)` → `(B, N, d)`; RoPE rotates queries and keys when given. On the CPU in f32
     /// the head split and the rotation are one pass ([`fused::attention_qkv_rope`]).
     pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
@@ -79,6 +83,10 @@ impl Block {
     /// many.
     pub fn quantize_int8(&mut self) -> Result<usize> {
         Ok(self.attn.quantize_int8()? + self.mlp.quantize_int8()?)
+    }
+
+    pub fn int8_bytes(&self) -> usize {
+        self.attn.int8_bytes() + self.mlp.int8_bytes()
     }
 
     pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
@@ -125,6 +133,10 @@ impl VitEncoder {
     /// Every block's linear layers in 8 bits where the CPU allows; returns how many.
     pub fn quantize_int8(&mut self) -> Result<usize> {
         self.blocks.iter_mut().map(Block::quantize_int8).sum()
+    }
+
+    pub fn int8_bytes(&self) -> usize {
+        self.blocks.iter().map(Block::int8_bytes).sum()
     }
 
     /// The position embedding resized to a `(gh, gw)` grid, `(1, gh·gw, d)`.

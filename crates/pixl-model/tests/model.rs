@@ -386,6 +386,13 @@ fn int8_linear_layers_stay_close_to_f32() {
     // fusion fc1 (256) and fc2 (128); ConvNeXt MLP fc2 of stages 1–3 (4·32, 4·64, 4·64 inputs);
     // not ConvNeXt's fc1 (16–64 inputs), stage 0's fc2 (64) or its proj (64).
     assert_eq!(layers, 4 * (2 + 4) + 2 + 3);
+    // Their 8-bit copies: per layer of n outputs and k inputs, one byte per weight with the
+    // outputs padded to panels of 32 and k to a multiple of 4, and three f32 per padded output
+    // (scale, weight sum, bias).
+    let bytes = |n: u64, k: u64| n.div_ceil(32) * 32 * (k.div_ceil(4) * 4 + 12);
+    let block = bytes(384, 128) + bytes(128, 128) + bytes(512, 128) + bytes(128, 512);
+    let want = 6 * block + bytes(128, 256) + bytes(128, 128) + bytes(32, 128) + 2 * bytes(64, 256);
+    assert_eq!(model.int8_bytes(), want);
     let mse = a.iter().zip(&b).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>() / a.len() as f64;
     let psnr = 10.0 * (1.0 / mse).log10();
     assert!(a != b, "quantized, yet bitwise the f32 output");

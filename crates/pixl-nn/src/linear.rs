@@ -54,6 +54,11 @@ impl Linear {
         Ok(self.int8.is_some())
     }
 
+    /// Bytes of the 8-bit copy ([`Int8Linear::bytes`]; 0 when not quantized).
+    pub fn int8_bytes(&self) -> usize {
+        self.int8.as_ref().map_or(0, |q| q.bytes())
+    }
+
     /// `act(xs · Wᵀ + b)` over the last dim.
     pub fn forward_act(&self, xs: &Tensor, act: Act) -> Result<Tensor> {
         match &self.int8 {
@@ -82,8 +87,14 @@ mod tests {
         let b = Tensor::randn(0f32, 0.05, 40, &dev).unwrap();
         let mut layer = Linear::new(candle_nn::Linear::new(w.clone(), Some(b.clone())));
         let f32_out = layer.forward_act(&x, Act::Gelu).unwrap();
+        assert_eq!(layer.int8_bytes(), 0);
         let quantized = layer.quantize_int8().unwrap();
         assert_eq!(quantized, crate::int8::available());
+        if quantized {
+            // One byte per weight (channels padded to whole panels of 32), and per channel a
+            // scale, a weight sum and a bias in f32: 40 channels pad to 64.
+            assert_eq!(layer.int8_bytes(), 64 * 256 + 3 * 64 * 4);
+        }
         let out = layer.forward_act(&x, Act::Gelu).unwrap();
         let err = crate::testing::max_abs_diff(&out, &f32_out).unwrap();
         let scale = f32_out.abs().unwrap().max_all().unwrap().to_scalar::<f32>().unwrap() as f64;

@@ -25,6 +25,11 @@ impl Mlp {
     pub fn quantize_int8(&mut self) -> Result<usize> {
         Ok(usize::from(self.fc1.quantize_int8()?) + usize::from(self.fc2.quantize_int8()?))
     }
+
+    /// Bytes of the layers' 8-bit copies.
+    pub fn int8_bytes(&self) -> usize {
+        self.fc1.int8_bytes() + self.fc2.int8_bytes()
+    }
 }
 
 impl Module for Mlp {

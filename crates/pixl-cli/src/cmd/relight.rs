@@ -212,6 +212,8 @@ struct Network {
     model: pixl_model::PixlRelight,
     cfg: pixl_model::Config,
     name: String,
+    /// Bytes of the 8-bit weight copies (`--int8`; 0 otherwise), held beside the f32 weights.
+    int8_bytes: u64,
 }
 
 fn load_network(
@@ -247,7 +249,13 @@ fn load_network(
         cfg.param_count(),
         cfg.patch
     );
-    Ok(Network { model, cfg, name })
+    let int8_bytes = model.int8_bytes();
+    Ok(Network {
+        model,
+        cfg,
+        name,
+        int8_bytes,
+    })
 }
 
 /// Bytes of memory available now (Linux `MemAvailable`), if known.
@@ -263,31 +271,33 @@ fn gb(bytes: u64) -> String {
 }
 
 /// What relighting a `w × h` photo at `max_side` costs: the working size, the network's plan,
-/// and the full-size buffers (the photo in f32 and the encoded output, `full_bytes_per_px`).
+/// the 8-bit weight copies (`--int8`), and the full-size buffers (the photo in f32 and the
+/// encoded output, `full_bytes_per_px`).
 struct Budget {
     work: (usize, usize),
     plan: MemoryPlan,
+    int8: u64,
     full: u64,
 }
 
 impl Budget {
-    fn new(
-        cfg: &pixl_model::Config,
-        dtype: DType,
-        size: (usize, usize),
-        max_side: usize,
-        full_bytes_per_px: u64,
-    ) -> Self {
+    fn new(net: &Network, dtype: DType, size: (usize, usize), max_side: usize, full_bytes_per_px: u64) -> Self {
         let work = fullres::working_size(size.0, size.1, max_side);
         Budget {
             work,
-            plan: fullres::plan_memory(cfg, dtype, work.0, work.1),
+            plan: fullres::plan_memory(&net.cfg, dtype, work.0, work.1),
+            int8: net.int8_bytes,
             full: full_bytes_per_px * (size.0 * size.1) as u64,
         }
     }
 
+    /// The network's planned peak with its 8-bit weight copies.
+    fn network(&self) -> u64 {
+        self.plan.peak_bytes() + self.int8
+    }
+
     fn total(&self) -> u64 {
-        self.plan.peak_bytes() + self.full
+        self.network() + self.full
     }
 }
 
@@ -295,7 +305,7 @@ impl Budget {
 /// and a `--max-side` that fits.
 fn check_budget(args: &Args, net: &Network, size: (usize, usize), per_px: u64) -> anyhow::Result<Budget> {
     let dtype: DType = args.dtype.into();
-    let budget = Budget::new(&net.cfg, dtype, size, args.max_side, per_px);
+    let budget = Budget::new(net, dtype, size, args.max_side, per_px);
     let (limit, whence) = match args.max_memory {
         Some(g) if g.is_finite() && g > 0.0 => ((g * 1e9) as u64, "--max-memory"),
         Some(g) => bail!("--max-memory {g}: must be a positive number of GB"),
@@ -310,7 +320,7 @@ fn check_budget(args: &Args, net: &Network, size: (usize, usize), per_px: u64) -
         budget.work.0,
         budget.work.1,
         budget.plan.tokens,
-        gb(budget.plan.peak_bytes()),
+        gb(budget.network()),
         gb(budget.full)
     );
     if budget.total() > limit {
@@ -319,7 +329,7 @@ fn check_budget(args: &Args, net: &Network, size: (usize, usize), per_px: u64) -
         let mut side = args.max_side.min(size.0.max(size.1));
         while side > 16 {
             side = if side > 64 { (side - 1) / 64 * 64 } else { 16 };
-            let b = Budget::new(&net.cfg, dtype, size, side, per_px);
+            let b = Budget::new(net, dtype, size, side, per_px);
             if b.total() <= limit {
                 fits = Some((side, b.total()));
                 break;
@@ -339,7 +349,7 @@ fn check_budget(args: &Args, net: &Network, size: (usize, usize), per_px: u64) -
             budget.work.1,
             args.max_side,
             gb(budget.total()),
-            gb(budget.plan.peak_bytes()),
+            gb(budget.network()),
             budget.plan.tokens,
             gb(budget.full),
             gb(limit),
@@ -500,7 +510,7 @@ fn report(
             "working_width": budget.work.0,
             "working_height": budget.work.1,
             "tokens": budget.plan.tokens,
-            "planned_network_bytes": budget.plan.peak_bytes(),
+            "planned_network_bytes": budget.network(),
             "planned_peak_stage": budget.plan.peak().0,
             "planned_full_size_bytes": budget.full,
             "weights": net.name,
