@@ -1,10 +1,12 @@
 //! Small private layer helpers.
 //!
 //! [`Conv`]: candle's `Conv2d` plus CPU paths for f32 inference (no gradient needed):
-//! - a 3×3, padding-1, stride-1 or -2 conv runs in [`pixl_nn::conv3x3`] (im2col tiles that stay in
-//!   L2, one single-threaded GEMM per tile written straight into the output, the bias, a skip
-//!   connection and the activation applied on the way; several times faster than candle's CPU
-//!   conv2d), and can take the ReLU of its input on the way ([`Conv::forward_fused`]);
+//! - a 3×3, padding-1, stride-1 or -2 conv runs in [`pixl_nn::winograd`] (stride 1, outputs from
+//!   64×64: F(4×4, 3×3), the weights transformed on each call, 1.8 ms for 256 → 256 channels) or
+//!   [`pixl_nn::conv3x3`] (im2col tiles that stay in L2, one single-threaded GEMM per tile written
+//!   straight into the output), the bias, a skip connection and the activation applied on the
+//!   way (several times faster than candle's CPU conv2d), and can take the ReLU of its input on
+//!   the way ([`Conv::forward_fused`]);
 //! - a 1×1, stride-1, unpadded conv is one matrix product `W · X` per image on the
 //!   channels-first input (no im2col copy, no transpose back), the bias and activation fused.
 //!
@@ -16,6 +18,7 @@ use candle_core::{DType, Module, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use pixl_nn::conv3x3::{conv3x3_tiled, tile_pixels, Epilogue, Im2colWeight};
 use pixl_nn::fused::{self, Act};
+use pixl_nn::winograd::{self, WinogradWeight};
 
 impl Conv {
     /// Whether the CPU f32 inference paths may take `xs` (no gradient anywhere).
@@ -59,7 +62,12 @@ impl Conv {
             residual: skip.as_deref(),
             act,
         };
-        let cin = xs.dim(1)?;
+        let (_, cin, h, wd) = xs.dims4()?;
+        if winograd::suits(cfg.stride, h, wd) {
+            let wt = WinogradWeight::new(w)?;
+            let block = winograd::block_tiles(wt.cin(), wt.cout());
+            return winograd::conv3x3_winograd(xs, &wt, input_relu, &epi, block).map(Some);
+        }
         conv3x3_tiled(
             xs,
             &Im2colWeight::new(w)?,

@@ -6,6 +6,7 @@
 use candle_core::{Device, Module, Result, Tensor};
 use pixl_nn::conv3x3::{conv3x3_tiled, tile_pixels, Epilogue, Im2colWeight};
 use pixl_nn::fused::Act;
+use pixl_nn::winograd::{block_tiles, conv3x3_winograd, WinogradWeight};
 use std::time::Instant;
 
 fn median_ms(mut f: impl FnMut() -> Result<()>) -> Result<f64> {
@@ -30,6 +31,10 @@ fn main() -> Result<()> {
         ("small refinenet1 rcu", 128, 128, 256, 1),
         ("paper refinenet1 rcu", 256, 256, 256, 1),
         ("paper resize3 s2", 1024, 1024, 32, 2),
+        ("128 at 64x64", 128, 128, 64, 1),
+        ("256 at 32x32", 256, 256, 32, 1),
+        ("256 at 16x16", 256, 256, 16, 1),
+        ("9 -> 32 at 256x256", 9, 32, 256, 1),
     ];
     for (name, cin, cout, side, stride) in shapes {
         let xs = Tensor::randn(0f32, 1.0, (1, cin, side, side), &dev)?;
@@ -51,6 +56,28 @@ fn main() -> Result<()> {
                 "{name:<22} tile {tile:>5}: {ms:>8.1} ms  {:>6.1} GFLOP/s",
                 gflop / ms * 1e3
             );
+        }
+        if stride == 1 {
+            let t0 = Instant::now();
+            let wino = WinogradWeight::new(&w)?;
+            println!(
+                "{name:<22} winograd weight transform: {:.2} ms",
+                t0.elapsed().as_secs_f64() * 1e3
+            );
+            let mut blocks = vec![block_tiles(cin, cout)];
+            blocks.extend(
+                std::env::var("WINOGRAD_BLOCKS")
+                    .unwrap_or_default()
+                    .split(',')
+                    .filter_map(|s| s.parse::<usize>().ok()),
+            );
+            for blk in blocks {
+                let ms = median_ms(|| conv3x3_winograd(&xs, &wino, false, &epi, blk).map(|_| ()))?;
+                println!(
+                    "{name:<22} winograd {blk:>4}: {ms:>6.1} ms  {:>6.1} GFLOP/s (direct-equivalent)",
+                    gflop / ms * 1e3
+                );
+            }
         }
         let cfg = candle_nn::Conv2dConfig {
             padding: 1,

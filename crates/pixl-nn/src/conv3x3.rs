@@ -14,6 +14,7 @@
 //! `(O, C, 3, 3)`, `out[o, y, x] = b[o] + Σ_{c,ky,kx} w[o, c, ky, kx]·in[c, s·y + ky − 1,
 //! s·x + kx − 1]` (zero outside), output `(B, O, ⌊(H − 1)/s⌋ + 1, ⌊(W − 1)/s⌋ + 1)`.
 use crate::fused::{self, bias_act_channels, bias_residual_channels, Act, Vector};
+use crate::winograd::{self, WinogradWeight};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
 use rayon::prelude::*;
@@ -262,12 +263,15 @@ pub fn conv3x3_tiled(
 }
 
 /// `Conv2d(cin, cout, 3, stride, padding=1)` with the bias, an optional skip connection and an
-/// activation applied in the same pass ([`conv3x3`] on the CPU, candle's `Conv2d`
-/// followed by the fused ops elsewhere).
+/// activation applied in the same pass (on the CPU in f32: [`crate::winograd`] where it
+/// [suits](crate::winograd::suits) the shape, [`conv3x3`] otherwise; candle's `Conv2d` followed
+/// by the fused ops elsewhere).
 #[derive(Clone, Debug)]
 pub struct Conv3x3 {
     conv: Conv2d,
     im2col: Im2colWeight,
+    /// The Winograd-transformed weights of a stride-1 convolution, made on first CPU use.
+    winograd: std::sync::Arc<std::sync::OnceLock<WinogradWeight>>,
     stride: usize,
     bias: Option<Vector>,
 }
@@ -291,6 +295,7 @@ impl Conv3x3 {
         };
         Ok(Self {
             im2col: Im2colWeight::new(&weight)?,
+            winograd: Default::default(),
             conv: Conv2d::new(weight, None, cfg),
             stride,
             bias,
@@ -309,6 +314,17 @@ impl Conv3x3 {
                 residual: skip.as_deref(),
                 act,
             };
+            let (_, _, h, w) = xs.dims4()?;
+            if winograd::suits(self.stride, h, w) {
+                let wt = match self.winograd.get() {
+                    Some(wt) => wt,
+                    None => {
+                        let wt = WinogradWeight::new(self.conv.weight())?;
+                        self.winograd.get_or_init(|| wt)
+                    }
+                };
+                return winograd::conv3x3_winograd(xs, wt, false, &epi, winograd::block_tiles(wt.cin(), wt.cout()));
+            }
             return conv3x3(xs, &self.im2col, self.stride, &epi);
         }
         let ys = self.conv.forward(xs)?;

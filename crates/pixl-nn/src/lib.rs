@@ -13,6 +13,7 @@
 //! - [`linear`] — a candle `Linear` with the fused f32 path and an optional 8-bit one.
 //! - [`mlp`] — Linear–GELU–Linear.
 //! - [`conv3x3`] — 3×3 convolution as L2-sized im2col tiles, one GEMM each, for inference.
+//! - [`winograd`] — stride-1 3×3 convolution by Winograd's F(4×4, 3×3), for inference.
 //! - [`dwconv`] — depthwise k×k convolution with its own forward and backward kernels.
 //! - [`attention`] — multi-head scaled-dot-product attention (a fused, blocked CPU kernel for
 //!   inference).
@@ -39,6 +40,7 @@ pub mod ops;
 pub mod profile;
 pub mod rope;
 pub mod testing;
+pub mod winograd;
 
 pub use attention::attention;
 pub use dwconv::{depthwise_conv2d, DepthwiseConv2d};

@@ -73,9 +73,10 @@ mod tests {
             std::thread::sleep(Duration::from_millis(2));
         }
         enable(false);
-        let t = take();
+        // Other tests of this crate may run kernels (and record their spans) meanwhile.
+        let t: Vec<_> = take().into_iter().filter(|e| e.0 == "test kind").collect();
         assert_eq!(t.len(), 1);
-        assert_eq!((t[0].0, t[0].2), ("test kind", 1));
+        assert_eq!(t[0].2, 1);
         assert!(t[0].1 >= 0.002);
     }
 }
