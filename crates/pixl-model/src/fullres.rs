@@ -21,6 +21,7 @@ use crate::model::PixlRelight;
 use candle_core::{DType, Device, Tensor};
 use pixl_core::Image;
 use pixl_nn::conv3x3::{self, tile_pixels};
+use pixl_nn::winograd;
 
 /// A request this module cannot serve.
 #[derive(Debug, thiserror::Error)]
@@ -358,9 +359,10 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
     let tiles = |cin: u64, cout: u64, k: u64, out_px: u64| {
         threads.min(out_px.div_ceil(CONV_TILE)) * CONV_TILE.min(out_px) * (cin * k * k + cout) * f
     };
-    // A 3×3 convolution of the CPU f32 path (`pixl_nn::conv3x3`): one im2col tile per thread at
-    // work (a single one when there are fewer tiles than threads), written straight into the
-    // output; in bf16 candle's conv2d as above.
+    // A 3×3 convolution of the CPU f32 path: one im2col tile per thread at work (a single one
+    // when there are fewer tiles than threads), written straight into the output
+    // (`pixl_nn::conv3x3`), or a Winograd block per thread (`pixl_nn::winograd`); in bf16
+    // candle's conv2d as above.
     let fast = dtype == DType::F32;
     let tiles3 = |cin: u64, cout: u64, out_px: u64| {
         if !fast {
@@ -368,7 +370,14 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
         }
         let n = out_px.div_ceil(u(tile_pixels(cin as usize)));
         let workers = if n < threads { 1 } else { threads };
-        workers * f * u(conv3x3::scratch_floats(cin as usize, out_px as usize))
+        let im2col = workers * f * u(conv3x3::scratch_floats(cin as usize, out_px as usize));
+        // Stride 1 from 64×64 up: Winograd blocks (one per thread) and the transformed weights.
+        let wino = if out_px >= 64 * 64 {
+            threads * f * u(winograd::scratch_floats(cin as usize, cout as usize)) + 36 * cin * cout * f
+        } else {
+            0
+        };
+        im2col.max(wino)
     };
 
     let weights = u(cfg.param_count()) * s;
@@ -467,7 +476,8 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
         + layers
         + cs * 16 * fe * n * 3
         + (rcu(16 * n) + tiles3(fe, fe, 16 * n)).max(cs * fe * 64 * n * out_conv_maps);
-    let out1 = kept_blocks + readouts + layers + cs * fe * 64 * n * (1 + 1 + 1) + tiles3(fe, fe / 2, 64 * n);
+    // output_conv1: refinenet1's output and the conv's (f/2 channels), with the conv's scratch.
+    let out1 = kept_blocks + readouts + layers + cs * (fe + fe / 2) * 64 * n + tiles3(fe, fe / 2, 64 * n);
     let tail = kept_blocks
         + readouts
         + layers
