@@ -1,5 +1,7 @@
 //! The 3×3 convolution kernel ([`pixl_nn::conv3x3`]) on the DPT head's shapes: median wall time
-//! and GFLOP/s per shape, by tile size (`conv3x3_tiled`), against candle's own conv2d.
+//! and GFLOP/s per shape, by tile size (`conv3x3_tiled`), by Winograd block size
+//! (`pixl_nn::winograd`, stride 1; more sizes in `WINOGRAD_BLOCKS=16,64,...`, and its rounding
+//! against the im2col path), against candle's own conv2d.
 //!
 //! `cargo run --release -p pixl-nn --example bench_conv3x3 [TILE...]` (threads:
 //! `RAYON_NUM_THREADS`; `scripts/bench/conv_torch.py` times the same shapes in PyTorch).
@@ -70,6 +72,15 @@ fn main() -> Result<()> {
                     .unwrap_or_default()
                     .split(',')
                     .filter_map(|s| s.parse::<usize>().ok()),
+            );
+            // Rounding against the im2col path (one f32 GEMM over 9·C terms per output).
+            let a = conv3x3_winograd(&xs, &wino, false, &epi, block_tiles(cin, cout))?;
+            let b = conv3x3_tiled(&xs, &im2col, 1, false, &epi, tile_pixels(cin))?;
+            let diff = (a - &b)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            let scale = b.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            println!(
+                "{name:<22} winograd vs im2col: max |diff| {diff:.2e}, {:.2e} of max |output|",
+                diff / scale
             );
             for blk in blocks {
                 let ms = median_ms(|| conv3x3_winograd(&xs, &wino, false, &epi, blk).map(|_| ()))?;
