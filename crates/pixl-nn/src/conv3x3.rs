@@ -57,6 +57,23 @@ pub struct Epilogue<'a> {
     pub act: Act,
 }
 
+impl Epilogue<'_> {
+    /// Errors unless the bias has `o` values and the skip connection `out_len`.
+    pub fn check(&self, o: usize, out_len: usize) -> Result<()> {
+        if let Some(r) = self.residual {
+            if r.len() != out_len {
+                candle_core::bail!("residual of {} values for an output of {out_len}", r.len());
+            }
+        }
+        if let Some(bias) = self.bias {
+            if bias.len() != o {
+                candle_core::bail!("bias of {} values for {o} output channels", bias.len());
+            }
+        }
+        Ok(())
+    }
+}
+
 /// `(B, C, H, W)` f32 CPU tensor → `(B, O, H', W')`, tiles of [`tile_pixels`] output pixels.
 pub fn conv3x3(xs: &Tensor, w: &Im2colWeight, stride: usize, epi: &Epilogue) -> Result<Tensor> {
     conv3x3_tiled(xs, w, stride, false, epi, tile_pixels(w.cin))
@@ -64,7 +81,7 @@ pub fn conv3x3(xs: &Tensor, w: &Im2colWeight, stride: usize, epi: &Epilogue) -> 
 
 /// The output pointer shared by the workers; each writes only its own tiles' pixels.
 #[derive(Clone, Copy)]
-struct OutPtr(*mut f32);
+pub(crate) struct OutPtr(pub(crate) *mut f32);
 // SAFETY: workers write disjoint index sets (distinct tiles) of one live allocation.
 unsafe impl Send for OutPtr {}
 unsafe impl Sync for OutPtr {}
@@ -156,16 +173,7 @@ pub fn conv3x3_tiled(
     let (ho, wo) = ((h - 1) / stride + 1, (wd - 1) / stride + 1);
     let plane = ho * wo;
     let mut out = vec![0f32; b * o * plane];
-    if let Some(r) = epi.residual {
-        if r.len() != out.len() {
-            candle_core::bail!("residual of {} values for an output of {}", r.len(), out.len());
-        }
-    }
-    if let Some(bias) = epi.bias {
-        if bias.len() != o {
-            candle_core::bail!("bias of {} values for {o} output channels", bias.len());
-        }
-    }
+    epi.check(o, out.len())?;
     if out.is_empty() {
         return Tensor::from_vec(out, (b, o, ho, wo), xs.device());
     }

@@ -16,7 +16,7 @@
 //! `M[ξ] = U[ξ]·V[ξ]` per ξ of the 36, and transforms `M` back straight into the output planes
 //! with the epilogue applied. The transforms are written over 16-lane arrays and compiled for
 //! AVX-512 or AVX2 where the CPU has them.
-use crate::conv3x3::Epilogue;
+use crate::conv3x3::{Epilogue, OutPtr};
 use crate::fused::{self, Act};
 use candle_core::{Result, Tensor};
 use rayon::prelude::*;
@@ -292,29 +292,30 @@ unsafe fn output_group(
     }
 }
 
-/// The output pointer shared by the workers; each writes only its own groups' pixels.
-#[derive(Clone, Copy)]
-struct OutPtr(*mut f32);
-// SAFETY: workers write disjoint index sets (distinct groups) of one live allocation.
-unsafe impl Send for OutPtr {}
-unsafe impl Sync for OutPtr {}
-
-/// One block: groups `g0 .. g0 + ng` of image `img` (its output planes at `out`).
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn block(
-    img: &[f32],
+/// What every block of one image's convolution shares.
+struct Job<'a> {
+    img: &'a [f32],
     geo: Geom,
-    wt: &WinogradWeight,
-    g0: usize,
-    ng: usize,
+    wt: &'a WinogradWeight,
     relu: bool,
-    epi: &Epilogue,
-    skip: Option<&[f32]>,
+    epi: &'a Epilogue<'a>,
+    skip: Option<&'a [f32]>,
+    /// The image's output planes.
     out: OutPtr,
-    scratch: &mut [f32],
-    par: gemm::Parallelism,
-) {
+}
+
+/// One block: groups `g0 .. g0 + ng` of the job's image.
+#[inline(always)]
+fn block(job: &Job, g0: usize, ng: usize, scratch: &mut [f32], par: gemm::Parallelism) {
+    let Job {
+        img,
+        geo,
+        wt,
+        relu,
+        epi,
+        skip,
+        out,
+    } = *job;
     let Geom { c, o, .. } = geo;
     let n = ng * LANES;
     let (v, m) = scratch.split_at_mut(XI * c * n);
@@ -364,69 +365,30 @@ fn block(
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn block_avx512(
-    img: &[f32],
-    geo: Geom,
-    wt: &WinogradWeight,
-    g0: usize,
-    ng: usize,
-    relu: bool,
-    epi: &Epilogue,
-    skip: Option<&[f32]>,
-    out: OutPtr,
-    scratch: &mut [f32],
-    par: gemm::Parallelism,
-) {
-    block(img, geo, wt, g0, ng, relu, epi, skip, out, scratch, par)
+unsafe fn block_avx512(job: &Job, g0: usize, ng: usize, scratch: &mut [f32], par: gemm::Parallelism) {
+    block(job, g0, ng, scratch, par)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
-#[allow(clippy::too_many_arguments)]
-unsafe fn block_avx2(
-    img: &[f32],
-    geo: Geom,
-    wt: &WinogradWeight,
-    g0: usize,
-    ng: usize,
-    relu: bool,
-    epi: &Epilogue,
-    skip: Option<&[f32]>,
-    out: OutPtr,
-    scratch: &mut [f32],
-    par: gemm::Parallelism,
-) {
-    block(img, geo, wt, g0, ng, relu, epi, skip, out, scratch, par)
+unsafe fn block_avx2(job: &Job, g0: usize, ng: usize, scratch: &mut [f32], par: gemm::Parallelism) {
+    block(job, g0, ng, scratch, par)
 }
 
 /// [`block`] compiled for the widest vector unit the CPU has.
-#[allow(clippy::too_many_arguments)]
-fn block_dispatch(
-    img: &[f32],
-    geo: Geom,
-    wt: &WinogradWeight,
-    g0: usize,
-    ng: usize,
-    relu: bool,
-    epi: &Epilogue,
-    skip: Option<&[f32]>,
-    out: OutPtr,
-    scratch: &mut [f32],
-    par: gemm::Parallelism,
-) {
+fn block_dispatch(job: &Job, g0: usize, ng: usize, scratch: &mut [f32], par: gemm::Parallelism) {
     #[cfg(target_arch = "x86_64")]
     {
         if std::arch::is_x86_feature_detected!("avx512f") {
             // SAFETY: the CPU supports the features the function is compiled for.
-            return unsafe { block_avx512(img, geo, wt, g0, ng, relu, epi, skip, out, scratch, par) };
+            return unsafe { block_avx512(job, g0, ng, scratch, par) };
         }
         if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
             // SAFETY: as above.
-            return unsafe { block_avx2(img, geo, wt, g0, ng, relu, epi, skip, out, scratch, par) };
+            return unsafe { block_avx2(job, g0, ng, scratch, par) };
         }
     }
-    block(img, geo, wt, g0, ng, relu, epi, skip, out, scratch, par)
+    block(job, g0, ng, scratch, par)
 }
 
 /// `act(conv(relu?(xs)) + b + residual)` for a stride-1 3×3 convolution, `(B, C, H, W)` f32 CPU
@@ -449,16 +411,7 @@ pub fn conv3x3_winograd(
     }
     let plane = h * w;
     let mut out = vec![0f32; b * o * plane];
-    if let Some(r) = epi.residual {
-        if r.len() != out.len() {
-            candle_core::bail!("residual of {} values for an output of {}", r.len(), out.len());
-        }
-    }
-    if let Some(bias) = epi.bias {
-        if bias.len() != o {
-            candle_core::bail!("bias of {} values for {o} output channels", bias.len());
-        }
-    }
+    epi.check(o, out.len())?;
     if out.is_empty() {
         return Tensor::from_vec(out, (b, o, h, w), xs.device());
     }
@@ -482,12 +435,18 @@ pub fn conv3x3_winograd(
         let (img, blk) = (bi / blocks_per_image, bi % blocks_per_image);
         let g0 = blk * per_block;
         let ng = per_block.min(groups - g0);
-        let image = &src[img * c * plane..(img + 1) * c * plane];
-        let skip = epi.residual.map(|r| &r[img * o * plane..(img + 1) * o * plane]);
         let d = dst;
-        // SAFETY: image `img`'s output planes lie at this offset inside `out`.
-        let out_img = OutPtr(unsafe { d.0.add(img * o * plane) });
-        block_dispatch(image, geo, wt, g0, ng, input_relu, epi, skip, out_img, scratch, par);
+        let job = Job {
+            img: &src[img * c * plane..(img + 1) * c * plane],
+            geo,
+            wt,
+            relu: input_relu,
+            epi,
+            skip: epi.residual.map(|r| &r[img * o * plane..(img + 1) * o * plane]),
+            // SAFETY: image `img`'s output planes lie at this offset inside `out`.
+            out: OutPtr(unsafe { d.0.add(img * o * plane) }),
+        };
+        block_dispatch(&job, g0, ng, scratch, par);
     };
     if blocks < threads {
         let mut scratch = vec![0f32; scratch_len];
