@@ -148,6 +148,41 @@ fn im2col(img: &[f32], g: Geom, p0: usize, t: usize, relu: bool, cols: &mut [f32
     }
 }
 
+/// `(B, C, H, W)` of a 3×3 convolution's input: errors unless it has `cin` channels and pixels.
+pub(crate) fn input_dims(xs: &Tensor, cin: usize) -> Result<(usize, usize, usize, usize)> {
+    let (b, c, h, w) = xs.dims4()?;
+    if c != cin {
+        candle_core::bail!("3x3 convolution expects {cin} input channels, got {c}");
+    }
+    if h == 0 || w == 0 {
+        candle_core::bail!("3x3 convolution of an empty {h}x{w} input");
+    }
+    Ok((b, c, h, w))
+}
+
+/// Runs `run(unit, scratch, parallelism)` for the units `0 .. n` of a convolution (tiles or
+/// blocks), each worker with its own `scratch_len` floats of scratch: in parallel on rayon's pool
+/// with single-threaded GEMMs, or, with fewer units than threads, one after another with the
+/// GEMM itself parallel.
+pub(crate) fn run_units(n: usize, scratch_len: usize, run: impl Fn(usize, &mut [f32], gemm::Parallelism) + Sync) {
+    let threads = rayon::current_num_threads().max(1);
+    if n < threads {
+        let mut scratch = vec![0f32; scratch_len];
+        for unit in 0..n {
+            run(unit, &mut scratch, fused::gemm_parallelism());
+        }
+    } else {
+        let tasks = (4 * threads).min(n);
+        let per_task = n.div_ceil(tasks);
+        (0..tasks).into_par_iter().for_each(|task| {
+            let mut scratch = vec![0f32; scratch_len];
+            for unit in task * per_task..((task + 1) * per_task).min(n) {
+                run(unit, &mut scratch, gemm::Parallelism::None);
+            }
+        });
+    }
+}
+
 /// [`conv3x3`] with an optional ReLU of the input (`input_relu`: `conv(relu(x))`) and tiles of
 /// `tile_px` output pixels (at least one).
 pub fn conv3x3_tiled(
@@ -159,15 +194,9 @@ pub fn conv3x3_tiled(
     tile_px: usize,
 ) -> Result<Tensor> {
     let _t = crate::profile::span("conv 3x3");
-    let (b, c, h, wd) = xs.dims4()?;
-    if c != w.cin {
-        candle_core::bail!("3x3 convolution expects {} input channels, got {c}", w.cin);
-    }
+    let (b, c, h, wd) = input_dims(xs, w.cin)?;
     if !(stride == 1 || stride == 2) {
         candle_core::bail!("3x3 convolution: stride {stride} (1 or 2 supported)");
-    }
-    if h == 0 || wd == 0 {
-        candle_core::bail!("3x3 convolution of an empty {h}x{wd} input");
     }
     let o = w.matrix.dim(0)?;
     let (ho, wo) = ((h - 1) / stride + 1, (wd - 1) / stride + 1);
@@ -193,7 +222,6 @@ pub fn conv3x3_tiled(
     let tile = tile_px.clamp(1, plane);
     let per_image = plane.div_ceil(tile);
     let tiles = b * per_image;
-    let threads = rayon::current_num_threads().max(1);
     let dst = OutPtr(out.as_mut_ptr());
     // One tile: im2col, GEMM into the output, epilogue on the block just written.
     let run = |ti: usize, cols: &mut [f32], par: gemm::Parallelism| {
@@ -251,21 +279,7 @@ pub fn conv3x3_tiled(
             }
         }
     };
-    if tiles < threads {
-        let mut cols = vec![0f32; k * tile];
-        for ti in 0..tiles {
-            run(ti, &mut cols, fused::gemm_parallelism());
-        }
-    } else {
-        let tasks = (4 * threads).min(tiles);
-        let per_task = tiles.div_ceil(tasks);
-        (0..tasks).into_par_iter().for_each(|task| {
-            let mut cols = vec![0f32; k * tile];
-            for ti in task * per_task..((task + 1) * per_task).min(tiles) {
-                run(ti, &mut cols, gemm::Parallelism::None);
-            }
-        });
-    }
+    run_units(tiles, k * tile, run);
     drop(storage);
     Tensor::from_vec(out, (b, o, ho, wo), xs.device())
 }

@@ -16,7 +16,7 @@
 //! `M[ξ] = U[ξ]·V[ξ]` per ξ of the 36, and transforms `M` back straight into the output planes
 //! with the epilogue applied. The transforms are written over 16-lane arrays and compiled for
 //! AVX-512 or AVX2 where the CPU has them.
-use crate::conv3x3::{Epilogue, OutPtr};
+use crate::conv3x3::{input_dims, run_units, Epilogue, OutPtr};
 use crate::fused::{self, Act};
 use candle_core::{Result, Tensor};
 use rayon::prelude::*;
@@ -401,14 +401,8 @@ pub fn conv3x3_winograd(
     block_tiles: usize,
 ) -> Result<Tensor> {
     let _t = crate::profile::span("conv 3x3");
-    let (b, c, h, w) = xs.dims4()?;
+    let (b, c, h, w) = input_dims(xs, wt.cin)?;
     let o = wt.cout;
-    if c != wt.cin {
-        candle_core::bail!("3x3 convolution expects {} input channels, got {c}", wt.cin);
-    }
-    if h == 0 || w == 0 {
-        candle_core::bail!("3x3 convolution of an empty {h}x{w} input");
-    }
     let plane = h * w;
     let mut out = vec![0f32; b * o * plane];
     epi.check(o, out.len())?;
@@ -448,21 +442,7 @@ pub fn conv3x3_winograd(
         };
         block_dispatch(&job, g0, ng, scratch, par);
     };
-    if blocks < threads {
-        let mut scratch = vec![0f32; scratch_len];
-        for bi in 0..blocks {
-            run(bi, &mut scratch, fused::gemm_parallelism());
-        }
-    } else {
-        let tasks = (4 * threads).min(blocks);
-        let per_task = blocks.div_ceil(tasks);
-        (0..tasks).into_par_iter().for_each(|task| {
-            let mut scratch = vec![0f32; scratch_len];
-            for bi in task * per_task..((task + 1) * per_task).min(blocks) {
-                run(bi, &mut scratch, gemm::Parallelism::None);
-            }
-        });
-    }
+    run_units(blocks, scratch_len, run);
     drop(storage);
     Tensor::from_vec(out, (b, o, h, w), xs.device())
 }
