@@ -400,7 +400,7 @@ impl Geometry {
     }
 
     /// The shading data at a BVH hit.
-    #[inline]
+    #[inline(always)]
     fn surface(&self, hit: Hit) -> SurfaceHit {
         let Hit { t, b1, b2, prim, p } = hit;
         let a = &self.attrs[prim as usize];

@@ -226,6 +226,8 @@ impl Renderer {
         // nothing is cleared between iterations).
         let (mut shadow, mut bounce) = (Batch::new(), Batch::new());
         let mut samples: [Option<BsdfSample>; PACKET] = [None; PACKET];
+        // Per lane, the uniforms of its light sample at this vertex (pick, position).
+        let mut light_u = [[0f32; 3]; PACKET];
         // Every live path is at vertex `depth` (all start at the camera hit and advance one
         // vertex per iteration).
         let mut depth = 0;
@@ -247,29 +249,42 @@ impl Renderer {
                 path.pick = None;
                 if path.bsdf.has_smooth() && !lights.is_empty() {
                     let (up, [u1, u2]) = smp.light(j);
-                    let pick = lights.pick_at(ShadingPoint {
+                    light_u[j] = [up, u1, u2];
+                    path.pick = Some(lights.pick_at(ShadingPoint {
                         p: path.hit.p,
                         n: path.bsdf.normal(),
                         two_sided: path.bsdf.transmits(),
                         solid_angle: depth == 0,
-                    });
-                    path.pick = Some(pick);
-                    if let Some(ls) = lights.sample(geom, &pick, up, u1, u2) {
-                        let e: BsdfEval = path.bsdf.eval(ls.wi);
-                        if !e.total().is_zero() && ls.pdf > 0.0 {
-                            let tmax = if ls.dist.is_finite() {
-                                ls.dist * (1.0 - 1e-3)
-                            } else {
-                                f32::INFINITY
-                            };
-                            let w = if ls.delta { 1.0 } else { power_heuristic(ls.pdf, e.pdf) };
-                            pending[j] = Some(Nee {
-                                e,
-                                scale: ls.li * (w / ls.pdf),
-                            });
-                            shadow.push(j, Self::spawn(&path.hit, ls.wi), tmax);
-                        }
+                    }));
+                }
+            }
+            // The light samples of all lanes at once (see `Lights::sample_lanes`).
+            let light_samples = {
+                let mut lanes: [Option<(&mut LightPick, [f32; 3])>; PACKET] = Default::default();
+                for ((lane, path), u) in lanes.iter_mut().zip(&mut paths).zip(&light_u) {
+                    if let Some(Path { pick: Some(pick), .. }) = path {
+                        *lane = Some((pick, *u));
                     }
+                }
+                lights.sample_lanes(geom, lanes)
+            };
+            for j in 0..n {
+                let (Some(path), Some(ls)) = (&paths[j], light_samples[j]) else {
+                    continue;
+                };
+                let e: BsdfEval = path.bsdf.eval(ls.wi);
+                if !e.total().is_zero() && ls.pdf > 0.0 {
+                    let tmax = if ls.dist.is_finite() {
+                        ls.dist * (1.0 - 1e-3)
+                    } else {
+                        f32::INFINITY
+                    };
+                    let w = if ls.delta { 1.0 } else { power_heuristic(ls.pdf, e.pdf) };
+                    pending[j] = Some(Nee {
+                        e,
+                        scale: ls.li * (w / ls.pdf),
+                    });
+                    shadow.push(j, Self::spawn(&path.hit, ls.wi), tmax);
                 }
             }
             let occluded = shadow.occluded(geom);
