@@ -475,7 +475,7 @@ fn rect_point(r: &RectCoords, s: &RectSolidAngle, u: f32, v: f32) -> (f32, f32) 
 fn sin_cos_poly(x: f32) -> (f32, f32) {
     const PIO2_1: f32 = 1.570_312_5;
     const PIO2_2: f32 = 4.837_513e-4;
-    const PIO2_3: f32 = 7.549_790_1e-8;
+    const PIO2_3: f32 = 7.549_79e-8;
     let q = (x * std::f32::consts::FRAC_2_PI).round_ties_even();
     let r = ((x - q * PIO2_1) - q * PIO2_2) - q * PIO2_3;
     let r2 = r * r;
