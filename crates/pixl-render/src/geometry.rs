@@ -370,6 +370,7 @@ impl Geometry {
     /// The closest hits of the lanes of `p` in `act` (see [`Bvh::intersect_pack`]), each
     /// passed with its lane to `out` as a [`SurfaceHit`] (lanes without a hit: `None`).
     #[inline(always)]
+    #[allow(clippy::manual_map)] // see below
     pub fn intersect_pack(&self, p: &mut RayPack, act: u32, tmin: f32, mut out: impl FnMut(usize, Option<SurfaceHit>)) {
         self.bvh.intersect_pack(p, act, tmin);
         // Start loading every hit's attributes before using the first (they are scattered over
@@ -383,7 +384,15 @@ impl Geometry {
         }
         for r in 0..crate::bvh::PACKET {
             if act >> r & 1 != 0 {
-                out(r, p.hit(r).map(|h| self.surface(h)));
+                // A `match`, not `map` with a closure: the closure was compiled out of line,
+                // outside the integrator's vector-feature kernels.
+                out(
+                    r,
+                    match p.hit(r) {
+                        Some(h) => Some(self.surface(h)),
+                        None => None,
+                    },
+                );
             }
         }
     }

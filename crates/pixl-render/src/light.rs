@@ -51,7 +51,7 @@
 use crate::bvh::Ray;
 use crate::error::Result;
 use crate::geometry::Geometry;
-use crate::math::{Frame, V3};
+use crate::math::{sin_cos_poly, Frame, V3};
 use crate::sampling::{
     concentric_disk, cosine_hemisphere, uniform_cone, uniform_sphere, uniform_triangle, Distribution1D, Distribution2D,
 };
@@ -466,28 +466,6 @@ fn rect_point(r: &RectCoords, s: &RectSolidAngle, u: f32, v: f32) -> (f32, f32) 
     (xu, if hv2 < 1.0 - 1e-6 { yv } else { y1 })
 }
 
-/// `(sin x, cos x)` with no call and no branch (vectorisable), within 1.2e-7 of the true values
-/// for `|x| ≤ 64` (tested; libm's `sinf`/`cosf` are within 6e-8): `x = q·π/2 + r` with `q` the
-/// nearest integer (Cody and Waite's reduction, π/2 in three parts, the first two short enough
-/// that their products with `q` are exact), Taylor polynomials of `sin r` and `cos r` on
-/// `|r| ≤ π/4` (truncation error ≤ 2e-9), and the quadrant from `q`.
-#[inline(always)]
-fn sin_cos_poly(x: f32) -> (f32, f32) {
-    const PIO2_1: f32 = 1.570_312_5;
-    const PIO2_2: f32 = 4.837_513e-4;
-    const PIO2_3: f32 = 7.549_79e-8;
-    let q = (x * std::f32::consts::FRAC_2_PI).round_ties_even();
-    let r = ((x - q * PIO2_1) - q * PIO2_2) - q * PIO2_3;
-    let r2 = r * r;
-    let s = r + r * r2 * (-1.0 / 6.0 + r2 * (1.0 / 120.0 + r2 * (-1.0 / 5040.0 + r2 * (1.0 / 362_880.0))));
-    let c =
-        1.0 + r2 * (-0.5 + r2 * (1.0 / 24.0 + r2 * (-1.0 / 720.0 + r2 * (1.0 / 40_320.0 + r2 * (-1.0 / 3_628_800.0)))));
-    // sin(r + qπ/2), cos(r + qπ/2): quadrants 0..3 give (s, c), (c, −s), (−s, −c), (−c, s).
-    let qi = q as i32;
-    let (a, b) = if qi & 1 == 0 { (s, c) } else { (c, s) };
-    (if qi & 2 == 0 { a } else { -a }, if (qi + 1) & 2 == 0 { b } else { -b })
-}
-
 /// `acos(x)` for `x` in `[−1, 1]` as `√(1 − |x|)·P(|x|)` (mirrored for `x < 0`), `P` the
 /// degree-7 polynomial of Abramowitz & Stegun 4.4.46 (error ≤ 2e-8 in exact arithmetic; in
 /// `f32` within 5e-7 of the true value, tested; libm's `acosf` is within 2.2e-7). Inline, with
@@ -595,6 +573,9 @@ pub struct Lights {
     sun_indices: Vec<usize>,
     /// Point and spot lights with a radius (spheres, hit by BSDF rays).
     sphere_indices: Vec<usize>,
+    /// The one pick item besides a constant world, if there is only one
+    /// ([`Lights::single_item`]).
+    single: Option<usize>,
 }
 
 fn smoothstep(x: f32) -> f32 {
@@ -922,7 +903,7 @@ impl Lights {
         } else {
             ((lo + hi) * 0.5, (hi - lo).length() * 0.5)
         };
-        Ok(Lights {
+        let mut lights = Lights {
             lights,
             base,
             analytic,
@@ -939,7 +920,10 @@ impl Lights {
             area_indices,
             sun_indices,
             sphere_indices,
-        })
+            single: None,
+        };
+        lights.single = lights.find_single_item();
+        Ok(lights)
     }
 
     pub fn is_empty(&self) -> bool {
@@ -1074,9 +1058,14 @@ impl Lights {
     }
 
     /// The one pick item that is not a constant world, when there is only one (then its
-    /// per-point weight does not matter, only whether it can reach the point).
+    /// per-point weight does not matter, only whether it can reach the point: it is picked with
+    /// probability 1 wherever it can).
     #[inline(always)]
     fn single_item(&self) -> Option<usize> {
+        self.single
+    }
+
+    fn find_single_item(&self) -> Option<usize> {
         let constant_env = self.env_index.filter(|_| !(self.env_peaked > 0.0));
         match (self.items(), constant_env) {
             (1, None) => Some(0),
@@ -1120,6 +1109,10 @@ impl Lights {
     /// Probability that `pick` chooses item `k`.
     #[inline(always)]
     fn item_pmf(&self, pick: &LightPick, k: usize) -> f32 {
+        if let Some(s) = self.single_item() {
+            // What the general case below gives, exactly: (1 − floor)·1 + floor·1 = 1 in f32.
+            return if k == s && pick.w[s] >= 0.0 { 1.0 } else { 0.0 };
+        }
         let w = if k < CACHED {
             pick.w[k]
         } else {
@@ -1153,19 +1146,26 @@ impl Lights {
     /// Light `i` and its pick probability, chosen by `pick` with the uniform number `u`.
     #[inline(always)]
     fn choose(&self, pick: &LightPick, u: f32) -> Option<(usize, f32)> {
-        let mut acc = 0.0;
-        let mut chosen = None;
-        for k in 0..self.items() {
-            let p = self.item_pmf(pick, k);
-            if p > 0.0 {
-                chosen = Some((k, p, acc));
-                acc += p;
-                if u < acc {
-                    break;
+        let (k, p, lo) = match self.single_item() {
+            // The walk below would find it with probability 1 (or nothing where it cannot reach).
+            Some(s) if pick.w[s] >= 0.0 => (s, 1.0, 0.0),
+            Some(_) => return None,
+            None => {
+                let mut acc = 0.0;
+                let mut chosen = None;
+                for k in 0..self.items() {
+                    let p = self.item_pmf(pick, k);
+                    if p > 0.0 {
+                        chosen = Some((k, p, acc));
+                        acc += p;
+                        if u < acc {
+                            break;
+                        }
+                    }
                 }
+                chosen?
             }
-        }
-        let (k, p, lo) = chosen?;
+        };
         if k < self.analytic {
             return Some((k, p));
         }
@@ -1785,6 +1785,8 @@ mod tests {
             + "[world]\ncolor = [0.2, 0.25, 0.3]\n";
         let (_, lights) = lights_of(&src.replace("emission_strength = 3.0", "emission_strength = 0.0"));
         assert_eq!((lights.items(), lights.single_item()), (2, Some(0)));
+        // The pick probability the general formula gives a lone item, exactly.
+        assert_eq!((1.0 - PICK_FLOOR) * (1.0 / 1.0) + PICK_FLOOR * (0.7 / 0.7), 1.0);
         let mut rng = Rng::new(2);
         for _ in 0..1000 {
             let sp = random_point(&mut rng);
@@ -2099,31 +2101,6 @@ mod tests {
                 }
             }
         }
-    }
-
-    #[test]
-    fn polynomial_sine_and_cosine_are_within_1_2e7_of_f64() {
-        // Every 2^-14 step over [−64, 64], and the multiples of π/4 (where the quadrant flips)
-        // with their neighbours.
-        let mut worst = 0.0f64;
-        let check = |x: f32, worst: &mut f64| {
-            let (s, c) = sin_cos_poly(x);
-            let e = (s as f64 - (x as f64).sin())
-                .abs()
-                .max((c as f64 - (x as f64).cos()).abs());
-            *worst = worst.max(e);
-        };
-        let n = 64i32 << 14;
-        for i in -n..=n {
-            check(i as f32 / (1 << 14) as f32, &mut worst);
-        }
-        for k in -81..=81 {
-            let x = k as f32 * std::f32::consts::FRAC_PI_4;
-            for x in [x, x.next_up(), x.next_down()] {
-                check(x, &mut worst);
-            }
-        }
-        assert!(worst < 1.2e-7, "max error {worst}");
     }
 
     #[test]

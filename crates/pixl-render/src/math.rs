@@ -206,3 +206,59 @@ pub fn prefetch<T>(p: *const T) {
     #[cfg(not(target_arch = "x86_64"))]
     let _ = p;
 }
+
+/// `(sin x, cos x)` with no call and no branch (vectorisable; the spherical rectangles of
+/// [`crate::light`] are sampled a packet at a time), within 1.2e-7 of the true values
+/// for `|x| ≤ 64` (tested; libm's `sinf`/`cosf` are within 6e-8): `x = q·π/2 + r` with `q` the
+/// nearest integer (Cody and Waite's reduction, π/2 in three parts, the first two short enough
+/// that their products with `q` are exact), Taylor polynomials of `sin r` and `cos r` on
+/// `|r| ≤ π/4` (truncation error ≤ 2e-9), and the quadrant from `q`.
+#[inline(always)]
+pub fn sin_cos_poly(x: f32) -> (f32, f32) {
+    const PIO2_1: f32 = 1.570_312_5;
+    const PIO2_2: f32 = 4.837_513e-4;
+    const PIO2_3: f32 = 7.549_79e-8;
+    // Rounded to the nearest integer by adding and removing 1.5·2^23 (no `roundss` needed
+    // outside the SSE4.1 kernels, where `round_ties_even` would be a libm call).
+    const ROUND: f32 = 12_582_912.0;
+    let q = (x * std::f32::consts::FRAC_2_PI + ROUND) - ROUND;
+    let r = ((x - q * PIO2_1) - q * PIO2_2) - q * PIO2_3;
+    let r2 = r * r;
+    let s = r + r * r2 * (-1.0 / 6.0 + r2 * (1.0 / 120.0 + r2 * (-1.0 / 5040.0 + r2 * (1.0 / 362_880.0))));
+    let c =
+        1.0 + r2 * (-0.5 + r2 * (1.0 / 24.0 + r2 * (-1.0 / 720.0 + r2 * (1.0 / 40_320.0 + r2 * (-1.0 / 3_628_800.0)))));
+    // sin(r + qπ/2), cos(r + qπ/2): quadrants 0..3 give (s, c), (c, −s), (−s, −c), (−c, s).
+    let qi = q as i32;
+    let (a, b) = if qi & 1 == 0 { (s, c) } else { (c, s) };
+    (if qi & 2 == 0 { a } else { -a }, if (qi + 1) & 2 == 0 { b } else { -b })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn polynomial_sine_and_cosine_are_within_1_2e7_of_f64() {
+        // Every 2^-14 step over [−64, 64], and the multiples of π/4 (where the quadrant flips)
+        // with their neighbours.
+        let mut worst = 0.0f64;
+        let check = |x: f32, worst: &mut f64| {
+            let (s, c) = sin_cos_poly(x);
+            let e = (s as f64 - (x as f64).sin())
+                .abs()
+                .max((c as f64 - (x as f64).cos()).abs());
+            *worst = worst.max(e);
+        };
+        let n = 64i32 << 14;
+        for i in -n..=n {
+            check(i as f32 / (1 << 14) as f32, &mut worst);
+        }
+        for k in -81..=81 {
+            let x = k as f32 * std::f32::consts::FRAC_PI_4;
+            for x in [x, x.next_up(), x.next_down()] {
+                check(x, &mut worst);
+            }
+        }
+        assert!(worst < 1.2e-7, "max error {worst}");
+    }
+}
