@@ -228,6 +228,8 @@ impl Renderer {
         let mut samples: [Option<BsdfSample>; PACKET] = [None; PACKET];
         // Per lane, the uniforms of its light sample at this vertex (pick, position).
         let mut light_u = [[0f32; 3]; PACKET];
+        // Per lane, its light sample at this vertex.
+        let mut light_samples = [None; PACKET];
         // Every live path is at vertex `depth` (all start at the camera hit and advance one
         // vertex per iteration).
         let mut depth = 0;
@@ -259,15 +261,15 @@ impl Renderer {
                 }
             }
             // The light samples of all lanes at once (see `Lights::sample_lanes`).
-            let light_samples = {
+            {
                 let mut lanes: [Option<(&mut LightPick, [f32; 3])>; PACKET] = Default::default();
                 for ((lane, path), u) in lanes.iter_mut().zip(&mut paths).zip(&light_u) {
                     if let Some(Path { pick: Some(pick), .. }) = path {
                         *lane = Some((pick, *u));
                     }
                 }
-                lights.sample_lanes(geom, lanes)
-            };
+                lights.sample_lanes(geom, lanes, &mut light_samples);
+            }
             for j in 0..n {
                 let (Some(path), Some(ls)) = (&paths[j], light_samples[j]) else {
                     continue;

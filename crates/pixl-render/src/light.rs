@@ -313,9 +313,7 @@ const MIN_RECT_OMEGA: f32 = 1e-3;
 /// vectorised loop: one at a time they cost 12–15 % of a whole render at 32 spp.
 #[derive(Clone, Copy, Debug)]
 struct RectView {
-    o: V3,
-    x: V3,
-    y: V3,
+    /// The rectangle's normal turned away from the point.
     z: V3,
     r: RectCoords,
 }
@@ -394,9 +392,6 @@ impl RectView {
         }
         let (x0, y0) = (d.dot(x), d.dot(y));
         Some(RectView {
-            o,
-            x,
-            y,
             z,
             r: RectCoords {
                 x0,
@@ -415,10 +410,10 @@ impl RectView {
         Some(rect_solid_angle(&self.r)).filter(|s| s.omega >= MIN_RECT_OMEGA)
     }
 
-    /// The point of local coordinates `(x, y)` on the rectangle.
+    /// The point of local coordinates `(x, y)` on the rectangle of frame `f` seen from `o`.
     #[inline(always)]
-    fn point(&self, x: f32, y: f32) -> V3 {
-        self.o + self.x * x + self.y * y + self.z * self.r.z0
+    fn point(&self, o: V3, f: &RectFrame, x: f32, y: f32) -> V3 {
+        o + f.x * x + f.y * y + self.z * self.r.z0
     }
 }
 
@@ -1188,8 +1183,9 @@ impl Lights {
     /// lane).
     pub fn sample(&self, geom: &Geometry, pick: &LightPick, u_pick: f32, u1: f32, u2: f32) -> Option<LightSample> {
         let mut pick = *pick;
-        let [s] = self.sample_lanes(geom, [Some((&mut pick, [u_pick, u1, u2]))]);
-        s
+        let mut out = [None];
+        self.sample_lanes(geom, [Some((&mut pick, [u_pick, u1, u2]))], &mut out);
+        out[0]
     }
 
     /// Light samples for up to `L` shading points at once: lane `l` samples one light for the
@@ -1203,11 +1199,12 @@ impl Lights {
         &self,
         geom: &Geometry,
         mut lanes: [Option<(&mut LightPick, [f32; 3])>; L],
-    ) -> [Option<LightSample>; L] {
-        let mut out = [None; L];
-        // Lanes sampling a rectangle by solid angle: the rectangle seen from the lane's point,
-        // its light and pick probability; and its coordinates and uniforms by lane.
-        let mut rects: [Option<(RectView, usize, f32)>; L] = [None; L];
+        out: &mut [Option<LightSample>; L],
+    ) {
+        *out = [None; L];
+        // Lanes sampling a rectangle by solid angle: its light, pick probability and the
+        // rectangle seen from the lane's point; and its coordinates and uniforms by lane.
+        let mut rects: [Option<(usize, f32, RectView)>; L] = [None; L];
         let mut coords = [RectCoords::PLACEHOLDER; L];
         let mut uv = [[0.5f32; 2]; L];
         for l in 0..L {
@@ -1223,7 +1220,7 @@ impl Lights {
             }
             match self.rect_view(i, &pick.sp) {
                 Some(view) => {
-                    rects[l] = Some((view, i, pick_p));
+                    rects[l] = Some((i, pick_p, view));
                     coords[l] = view.r;
                     uv[l] = [u1, u2];
                 }
@@ -1231,7 +1228,7 @@ impl Lights {
             }
         }
         if rects.iter().all(Option::is_none) {
-            return out;
+            return;
         }
         let mut solid = [(0f32, 0f32, 0f32); L];
         for l in 0..L {
@@ -1240,12 +1237,15 @@ impl Lights {
             solid[l] = (s.omega, x, y);
         }
         for l in 0..L {
-            let Some((view, i, pick_p)) = rects[l] else { continue };
+            let (Some((i, pick_p, view)), Some((pick, _))) = (rects[l], &mut lanes[l]) else {
+                continue;
+            };
             let LightKind::Area {
                 c,
                 ex,
                 ey,
                 n,
+                frame,
                 radiance,
                 area,
                 ..
@@ -1253,20 +1253,20 @@ impl Lights {
             else {
                 continue;
             };
+            let o = pick.sp.p;
             let (omega, x, y) = solid[l];
             // A solid angle too small to sample by: sampled by area.
             let by_angle = omega >= MIN_RECT_OMEGA;
             let q = if by_angle {
-                view.point(x, y)
+                view.point(o, frame, x, y)
             } else {
                 area_point(*c, *ex, *ey, false, uv[l][0], uv[l][1])
             };
-            out[l] = area_sample(view.o, q, *n, *radiance, *area, pick_p, by_angle.then_some(omega));
-            if let (true, Some((pick, _))) = (by_angle, &mut lanes[l]) {
+            out[l] = area_sample(o, q, *n, *radiance, *area, pick_p, by_angle.then_some(omega));
+            if by_angle {
                 pick.rect = Some((i, omega));
             }
         }
-        out
     }
 
     /// The rectangle of light `i` seen from `sp`, when it is sampled by solid angle there (an
@@ -2026,7 +2026,7 @@ mod tests {
             let mut est = 0.0f64;
             for _ in 0..samples {
                 let (x, y) = rect_point(&view.r, &r, rng.f32(), rng.f32());
-                let q = view.point(x, y);
+                let q = view.point(o, &RectFrame::new(ex * 2.0, ey * 2.0), x, y);
                 let local = q - c;
                 let (a, b) = (local.dot(ex) / ex.dot(ex), local.dot(ey) / ey.dot(ey));
                 assert!(
@@ -2082,7 +2082,8 @@ mod tests {
                     let (l, pick) = it.next().expect("L picks");
                     live[l].then_some((pick, us[l]))
                 });
-                let packet = lights.sample_lanes(&geom, lanes);
+                let mut packet = [None; L];
+                lights.sample_lanes(&geom, lanes, &mut packet);
                 for l in 0..L {
                     let alone = live[l]
                         .then(|| lights.sample(&geom, &picks[l], us[l][0], us[l][1], us[l][2]))
