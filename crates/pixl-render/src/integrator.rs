@@ -183,11 +183,12 @@ impl Renderer {
     /// Samples `s0..s0 + n` (`n ≤ PACKET`) of pixel `(x, y)`: each one camera path, its
     /// contribution to every pass added to `acc` (in sample order).
     ///
-    /// The paths run in lockstep, one vertex at a time: every live path picks its light
-    /// sample, then all their shadow rays are traced (as one packet when there are enough of
-    /// them), then every path samples its BSDF, then all continuation rays are traced. Per
-    /// path, the random numbers, the estimator and the order of its float operations are those
-    /// of a path traced alone.
+    /// The paths run in lockstep, one vertex at a time: every live path picks its light, then
+    /// the light samples of all of them are drawn at once ([`Lights::sample_lanes`], which
+    /// vectorises the solid-angle samples of rectangles across the lanes), then all their
+    /// shadow rays are traced (as one packet when there are enough of them), then every path
+    /// samples its BSDF, then all continuation rays are traced. Per path, the random numbers,
+    /// the estimator and the order of its float operations are those of a path traced alone.
     #[inline(always)]
     fn trace_packet(&self, x: usize, y: usize, pixel: u64, s0: usize, n: usize, acc: &mut PixelSum) {
         let geom = &self.geom;

@@ -27,7 +27,7 @@
 //! - Area: one-sided Lambertian, radiance `P·color / (π A)`, emitting along its direction; its
 //!   local X (`size`) is `normalize(d × Y)` (or +X when `d ∥ Y`), local Y is `(−d) × X`.
 //!   Sampled by area, except rectangles seen from a camera vertex (unless they subtend under
-//!   1e-3 sr), sampled uniformly in the solid angle they subtend ([`SphericalRect`]).
+//!   1e-3 sr), sampled uniformly in the solid angle they subtend ([`RectView`]).
 //! - Sun: irradiance `strength·color` on a surface facing it; with an angular diameter of at
 //!   least ~0.16° (Blender's default is 0.526°) a cone of uniform radiance `E / Ω` (`Ω = 2π(1 −
 //!   cos(angle/2))`, directions sampled uniformly in it), below that a delta light of
@@ -83,7 +83,7 @@ pub enum LightKind {
         ey: V3,
         n: V3,
         disk: bool,
-        /// Unit edge directions and full edge lengths (for [`SphericalRect`]).
+        /// Unit edge directions and full edge lengths (for [`RectView`]).
         frame: RectFrame,
         radiance: V3,
         area: f32,
@@ -157,7 +157,7 @@ pub struct ShadingPoint {
     pub n: V3,
     /// Light from both sides of `n` can scatter (a transmission lobe): no cosine bound.
     pub two_sided: bool,
-    /// Sample rectangular area lights by solid angle ([`SphericalRect`]; costlier per sample,
+    /// Sample rectangular area lights by solid angle ([`RectView`]; costlier per sample,
     /// worth it where the light is seen directly: the integrator asks it at the camera vertex).
     pub solid_angle: bool,
 }
