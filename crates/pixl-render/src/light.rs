@@ -1227,16 +1227,18 @@ impl Lights {
                 None => out[l] = self.sample_chosen(geom, &pick.sp, i, pick_p, u1, u2),
             }
         }
-        if rects.iter().all(Option::is_none) {
+        // Only up to the last such lane (a 1-spp render's packets have one lane): the loop is
+        // vectorised in blocks of lanes, the rest computed one by one, with the same values.
+        let Some(end) = rects.iter().rposition(Option::is_some).map(|l| l + 1) else {
             return;
-        }
+        };
         let mut solid = [(0f32, 0f32, 0f32); L];
-        for l in 0..L {
+        for l in 0..end {
             let s = rect_solid_angle(&coords[l]);
             let (x, y) = rect_point(&coords[l], &s, uv[l][0], uv[l][1]);
             solid[l] = (s.omega, x, y);
         }
-        for l in 0..L {
+        for l in 0..end {
             let (Some((i, pick_p, view)), Some((pick, _))) = (rects[l], &mut lanes[l]) else {
                 continue;
             };
