@@ -2048,13 +2048,9 @@ mod tests {
     /// by solid angle (near) and by area (screened: far), and lanes without a sample.
     #[test]
     fn light_samples_of_a_packet_are_those_of_each_lane_alone() {
-        let far = r#"
-            [camera]
-            width = 8
-            height = 8
-            fov_y_deg = 50.0
-            position = [0.0, 1.0, 4.0]
-            look_at = [0.0, 0.5, 0.0]
+        // MANY's camera and objects, with a near rectangle and a far one instead of its lights.
+        let far = MANY.split("[[lights]]").next().expect("head").to_string()
+            + r#"
             [[lights]]
             type = "area"
             shape = "rectangle"
@@ -2071,7 +2067,7 @@ mod tests {
             power = 100.0
             "#;
         const L: usize = 16;
-        for src in [MANY, far] {
+        for src in [MANY, far.as_str()] {
             let (geom, lights) = lights_of(src);
             let mut rng = Rng::new(11);
             for _ in 0..200 {
