@@ -3,7 +3,10 @@
 //! Layers (pbrt-style): [`render`] (pixels in parallel with rayon, at least a row per task) →
 //! `render_pixel` (samples of one pixel) → `trace_packet` (up to [`PACKET`] camera paths of
 //! that pixel in lockstep, one vertex at a time, so that their camera, shadow and continuation
-//! rays share BVH traversals as packets).
+//! rays share BVH traversals as packets). `trace_packet` is compiled for packets of [`PACKET`]
+//! lanes and of one lane: a 1-spp render (the first frames of a progressive preview) takes the
+//! second, whose per-lane arrays and sample numbers cost one lane rather than sixteen (−14 %
+//! render time at 1 spp, BENCHMARKS.md).
 //!
 //! Random numbers ([`crate::sampler`], chosen by [`Renderer::sampler`]): each `(pixel, sample)`
 //! asks for its uniforms by *dimension*, fixed per decision and bounce — pixel position
@@ -167,7 +170,12 @@ impl Renderer {
         let spp = self.opts.spp as usize;
         for s0 in (0..spp).step_by(PACKET) {
             let n = PACKET.min(spp - s0);
-            self.trace_packet(x, y, pixel, s0, n, &mut acc);
+            if n == 1 {
+                // A 1-spp render's packets: one lane, without the bookkeeping of the others.
+                self.trace_packet::<1>(x, y, pixel, s0, n, &mut acc);
+            } else {
+                self.trace_packet::<PACKET>(x, y, pixel, s0, n, &mut acc);
+            }
         }
         acc
     }
@@ -180,8 +188,8 @@ impl Renderer {
         Ray::leaving(hit.prim, hit.p, wi)
     }
 
-    /// Samples `s0..s0 + n` (`n ≤ PACKET`) of pixel `(x, y)`: each one camera path, its
-    /// contribution to every pass added to `acc` (in sample order).
+    /// Samples `s0..s0 + n` (`n ≤ L`, the lanes it is compiled for) of pixel `(x, y)`: each
+    /// one camera path, its contribution to every pass added to `acc` (in sample order).
     ///
     /// The paths run in lockstep, one vertex at a time: every live path picks its light, then
     /// the light samples of all of them are drawn at once ([`Lights::sample_lanes`], which
@@ -190,16 +198,16 @@ impl Renderer {
     /// samples its BSDF, then all continuation rays are traced. Per path, the random numbers,
     /// the estimator and the order of its float operations are those of a path traced alone.
     #[inline(always)]
-    fn trace_packet(&self, x: usize, y: usize, pixel: u64, s0: usize, n: usize, acc: &mut PixelSum) {
+    fn trace_packet<const L: usize>(&self, x: usize, y: usize, pixel: u64, s0: usize, n: usize, acc: &mut PixelSum) {
         let geom = &self.geom;
         let lights = &self.lights;
-        let mut sums = [PixelSum::default(); PACKET];
+        let mut sums = [PixelSum::default(); L];
         // The samples' uniform numbers, lane j = sample s0 + j (each decision draws from its own
         // dimension; the live paths are at the same vertex).
-        let mut smp = PacketSampler::start(self.sampler, self.opts.seed, pixel, s0 as u32, n, self.opts.spp);
+        let mut smp = PacketSampler::<L>::start(self.sampler, self.opts.seed, pixel, s0 as u32, n, self.opts.spp);
         // Camera rays (lane = slot), one packet whatever their number; only the `n` samples of
         // this packet are traced (a low-spp render would otherwise pay for all PACKET lanes).
-        let mut camera = Batch::new();
+        let mut camera = Batch::<L>::new();
         for j in 0..n {
             let [u, v] = smp.camera(j);
             let (px, py) = (x as f32 + u, y as f32 + v);
@@ -211,26 +219,26 @@ impl Renderer {
             };
             camera.push(j, ray, f32::INFINITY);
         }
-        let mut hits = [None; PACKET];
+        let mut hits = [None; L];
         camera.intersect(geom, 1, &mut hits);
-        let mut paths: [Option<Path>; PACKET] = std::array::from_fn(|_| None);
+        let mut paths: [Option<Path>; L] = std::array::from_fn(|_| None);
         for j in 0..n {
             paths[j] = self.camera_vertex(&camera.pack.ray(j), hits[j], &mut sums[j]);
         }
         let max_b = self.opts.max_bounces;
         // Per lane: the light the pending shadow ray carries, if unoccluded.
-        let mut pending: [Option<Nee>; PACKET] = [None; PACKET];
+        let mut pending: [Option<Nee>; L] = [None; L];
         // Per lane, the closest hit of its continuation ray (set for the lanes that trace one).
-        let mut next = [None; PACKET];
+        let mut next = [None; L];
         // Per iteration: shadow rays, continuation rays and the BSDF sample of each lane that
         // continues (a lane alive after the BSDF step has always written its entries, so
         // nothing is cleared between iterations).
-        let (mut shadow, mut bounce) = (Batch::new(), Batch::new());
-        let mut samples: [Option<BsdfSample>; PACKET] = [None; PACKET];
+        let (mut shadow, mut bounce) = (Batch::<L>::new(), Batch::<L>::new());
+        let mut samples: [Option<BsdfSample>; L] = [None; L];
         // Per lane, the uniforms of its light sample at this vertex (pick, position).
-        let mut light_u = [[0f32; 3]; PACKET];
+        let mut light_u = [[0f32; 3]; L];
         // Per lane, its light sample at this vertex.
-        let mut light_samples = [None; PACKET];
+        let mut light_samples = [None; L];
         // Every live path is at vertex `depth` (all start at the camera hit and advance one
         // vertex per iteration).
         let mut depth = 0;
@@ -263,23 +271,13 @@ impl Renderer {
             }
             // The light samples of all lanes at once (see `Lights::sample_lanes`).
             {
-                let mut lanes: [Option<(&mut LightPick, [f32; 3])>; PACKET] = Default::default();
+                let mut lanes: [Option<(&mut LightPick, [f32; 3])>; L] = std::array::from_fn(|_| None);
                 for ((lane, path), u) in lanes.iter_mut().zip(&mut paths[..n]).zip(&light_u) {
                     if let Some(Path { pick: Some(pick), .. }) = path {
                         *lane = Some((pick, *u));
                     }
                 }
-                if n == 1 {
-                    // A 1-spp render's packets: the one-lane form, without the other lanes'
-                    // bookkeeping (the same numbers; 7 % fewer instructions in the pixel kernel
-                    // at 1 spp, callgrind).
-                    let [lane, ..] = lanes;
-                    let mut one = [None];
-                    lights.sample_lanes(geom, [lane], &mut one);
-                    light_samples[0] = one[0];
-                } else {
-                    lights.sample_lanes(geom, lanes, &mut light_samples);
-                }
+                lights.sample_lanes(geom, lanes, &mut light_samples);
             }
             for j in 0..n {
                 let (Some(path), Some(ls)) = (&paths[j], light_samples[j]) else {
@@ -474,20 +472,20 @@ const MIN_BOUNCE_PACKET: usize = 8;
 /// [`RayPack`], for one BVH query. Its queries (and the light hit tests after them) are
 /// `#[inline(always)]` so that they are compiled into the AVX2 pixel loop rather than as
 /// separate baseline functions (render instructions −1.5 %, git history of BENCHMARKS.md).
-struct Batch {
+struct Batch<const L: usize> {
     pack: RayPack,
     /// Lane of each ray, and slot of each lane's ray.
-    lane: [u8; PACKET],
-    slot: [u8; PACKET],
+    lane: [u8; L],
+    slot: [u8; L],
     len: usize,
 }
 
-impl Batch {
-    fn new() -> Batch {
+impl<const L: usize> Batch<L> {
+    fn new() -> Self {
         Batch {
             pack: RayPack::empty(),
-            lane: [0; PACKET],
-            slot: [0; PACKET],
+            lane: [0; L],
+            slot: [0; L],
             len: 0,
         }
     }
@@ -513,8 +511,8 @@ impl Batch {
 
     /// Per lane, whether its ray is occluded (`false` for lanes without a ray).
     #[inline(always)]
-    fn occluded(&mut self, geom: &Geometry) -> [bool; PACKET] {
-        let mut out = [false; PACKET];
+    fn occluded(&mut self, geom: &Geometry) -> [bool; L] {
+        let mut out = [false; L];
         let k = self.len;
         if k >= MIN_SHADOW_PACKET {
             let slots = self.slots();
@@ -533,7 +531,7 @@ impl Batch {
     /// The closest hit of each ray, written to `out` at its lane (lanes without a ray are
     /// left as they are); batches of fewer than `min_packet` rays are traced one by one.
     #[inline(always)]
-    fn intersect(&mut self, geom: &Geometry, min_packet: usize, out: &mut [Option<SurfaceHit>; PACKET]) {
+    fn intersect(&mut self, geom: &Geometry, min_packet: usize, out: &mut [Option<SurfaceHit>; L]) {
         let k = self.len;
         if k >= min_packet {
             let (slots, lane) = (self.slots(), &self.lane);
@@ -682,7 +680,7 @@ mod tests {
                     let pixel = (y * r.width as usize + x) as u64;
                     let mut alone = PixelSum::default();
                     for s in 0..spp as usize {
-                        r.trace_packet(x, y, pixel, s, 1, &mut alone);
+                        r.trace_packet::<1>(x, y, pixel, s, 1, &mut alone);
                     }
                     assert!(same(&together, &alone), "pixel ({x}, {y}), spp {spp}, {sampler:?}");
                     assert!(together.combined.is_finite());

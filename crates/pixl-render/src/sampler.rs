@@ -93,16 +93,16 @@ pub mod dim {
     }
 }
 
-/// The uniform numbers of a packet of samples `s0..s0 + n` (`n ≤ LANES`) of one pixel, lane
+/// The uniform numbers of a packet of samples `s0..s0 + n` (`n ≤ L`) of one pixel, lane
 /// `j` being sample `s0 + j`: one method per decision of the integrator, each drawing from the
 /// dimension [`dim`] assigns it. A packet's live paths are all at the same vertex (they advance
 /// in lockstep), so [`PacketSampler::begin_vertex`] says which bounce's block comes next and the
 /// Sobol sampler computes that block for all lanes at once (straight-line loops over the lanes
 /// that compile to vector code). One type for both samplers (a branch per call rather than two
 /// copies of the integrator, which would change what the compiler inlines into it).
-pub enum PacketSampler {
-    Sobol(SobolPacket),
-    Independent(IndependentPacket),
+pub enum PacketSampler<const L: usize> {
+    Sobol(SobolPacket<L>),
+    Independent(IndependentPacket<L>),
 }
 
 macro_rules! dispatch {
@@ -114,7 +114,7 @@ macro_rules! dispatch {
     };
 }
 
-impl PacketSampler {
+impl<const L: usize> PacketSampler<L> {
     #[inline(always)]
     /// Samples `s0 .. s0 + n` of pixel `pixel` in a render of `spp` samples per pixel.
     pub fn start(kind: Sampler, seed: u64, pixel: u64, s0: u32, n: usize, spp: u32) -> Self {
@@ -164,19 +164,20 @@ impl PacketSampler {
     }
 }
 
-/// Lanes of a packet: the integrator's packets of [`PACKET`] samples.
+/// Lanes of a full packet: the integrator's packets of [`PACKET`] samples (a 1-spp render's
+/// packets have one lane).
 pub const LANES: usize = PACKET;
 
 /// [`Sampler::Independent`]: each lane's own stream, drawn in call order.
-pub struct IndependentPacket {
-    rngs: [Rng; LANES],
+pub struct IndependentPacket<const L: usize> {
+    rngs: [Rng; L],
 }
 
-impl IndependentPacket {
+impl<const L: usize> IndependentPacket<L> {
     #[inline(always)]
     pub fn start(seed: u64, pixel: u64, s0: u32, n: usize) -> Self {
         // Streams for the `n` samples only (the rest are never drawn from).
-        let mut rngs: [Rng; LANES] = std::array::from_fn(|_| Rng::from_state([0; 4]));
+        let mut rngs: [Rng; L] = std::array::from_fn(|_| Rng::from_state([0; 4]));
         for (j, rng) in rngs[..n].iter_mut().enumerate() {
             *rng = Rng::for_stream(seed, &[pixel, s0 as u64 + j as u64]);
         }
@@ -219,18 +220,18 @@ impl IndependentPacket {
 
 /// [`Sampler::Sobol`]: the lanes' bit-reversed sample indices, the pixel's key, and the numbers
 /// of the current vertex's dimensions for every lane (structure of arrays).
-pub struct SobolPacket {
+pub struct SobolPacket<const L: usize> {
     key: u64,
-    rindex: [u32; LANES],
-    camera: [[f32; LANES]; 2],
-    pick: [f32; LANES],
-    light: [[f32; LANES]; 2],
-    lobe: [f32; LANES],
-    dir: [[f32; LANES]; 2],
-    roulette: [f32; LANES],
+    rindex: [u32; L],
+    camera: [[f32; L]; 2],
+    pick: [f32; L],
+    light: [[f32; L]; 2],
+    lobe: [f32; L],
+    dir: [[f32; L]; 2],
+    roulette: [f32; L],
 }
 
-impl SobolPacket {
+impl<const L: usize> SobolPacket<L> {
     /// All lanes are computed whatever the number of samples (vector code).
     #[inline(always)]
     /// `centred`: the pixel position's net shifted to put sample 0 at the pixel centre (for
@@ -239,12 +240,12 @@ impl SobolPacket {
         let mut p = SobolPacket {
             key: pixel_key(seed, pixel),
             rindex: std::array::from_fn(|j| s0.wrapping_add(j as u32).reverse_bits()),
-            camera: [[0.0; LANES]; 2],
-            pick: [0.0; LANES],
-            light: [[0.0; LANES]; 2],
-            lobe: [0.0; LANES],
-            dir: [[0.0; LANES]; 2],
-            roulette: [0.0; LANES],
+            camera: [[0.0; L]; 2],
+            pick: [0.0; L],
+            light: [[0.0; L]; 2],
+            lobe: [0.0; L],
+            dir: [[0.0; L]; 2],
+            roulette: [0.0; L],
         };
         // The pixel position; centred: the pixel's net XOR-shifted so that its first sample
         // (index 0) sits at the pixel centre in both coordinates (module docs).
@@ -305,8 +306,8 @@ impl SobolPacket {
 
 /// First coordinate of dimension `keys` for every lane.
 #[inline(always)]
-fn lanes1d(rindex: &[u32; LANES], keys: &DimKeys, out: &mut [f32; LANES]) {
-    for j in 0..LANES {
+fn lanes1d<const L: usize>(rindex: &[u32; L], keys: &DimKeys, out: &mut [f32; L]) {
+    for j in 0..L {
         out[j] = to_unit(keys.first(keys.shuffled(rindex[j])));
     }
 }
@@ -314,8 +315,8 @@ fn lanes1d(rindex: &[u32; LANES], keys: &DimKeys, out: &mut [f32; LANES]) {
 /// Both coordinates of dimension `keys` for every lane, each XOR-ed with its `shift` (a digital
 /// shift: it maps the elementary intervals of every level onto one another, so nets stay nets).
 #[inline(always)]
-fn lanes2d(rindex: &[u32; LANES], keys: &DimKeys, shift: [u32; 2], x: &mut [f32; LANES], y: &mut [f32; LANES]) {
-    for j in 0..LANES {
+fn lanes2d<const L: usize>(rindex: &[u32; L], keys: &DimKeys, shift: [u32; 2], x: &mut [f32; L], y: &mut [f32; L]) {
+    for j in 0..L {
         let i = keys.shuffled(rindex[j]);
         x[j] = to_unit(keys.first(i) ^ shift[0]);
         y[j] = to_unit(keys.second(i) ^ shift[1]);
@@ -603,16 +604,17 @@ mod tests {
     #[test]
     fn packets_give_the_per_sample_points() {
         // What the integrator reads from a packet (lane j = sample s0 + j) is `sobol_point`
-        // of that sample and dimension, for full and partial packets and every vertex block.
-        for (seed, pixel, s0, n) in [(3u64, 17u64, 0u32, 16usize), (3, 17, 16, 16), (9, 4096, 32, 5)] {
+        // of that sample and dimension, for full and partial packets, one-lane packets (1-spp
+        // renders) and every vertex block.
+        fn check<const L: usize>(seed: u64, pixel: u64, s0: u32, n: usize) {
             for spp in [1u32, 64] {
-                let mut p = SobolPacket::start(seed, pixel, s0, spp == 1);
+                let mut p = SobolPacket::<L>::start(seed, pixel, s0, spp == 1);
                 for j in 0..n {
                     let want = pixel_position(seed, pixel, s0 + j as u32, spp).map(to_unit);
-                    assert_eq!(p.camera(j), want, "spp {spp}");
+                    assert_eq!(p.camera(j), want, "spp {spp}, {L} lanes");
                 }
             }
-            let mut p = SobolPacket::start(seed, pixel, s0, false);
+            let mut p = SobolPacket::<L>::start(seed, pixel, s0, false);
             let f = |i: u32, d: u32| point(seed, pixel, i, d);
             for depth in 0..6 {
                 p.begin_vertex(depth);
@@ -627,8 +629,14 @@ mod tests {
                 }
             }
         }
+        for (seed, pixel, s0, n) in [(3u64, 17u64, 0u32, 16usize), (3, 17, 16, 16), (9, 4096, 32, 5)] {
+            check::<LANES>(seed, pixel, s0, n);
+        }
+        for (seed, pixel, s0) in [(3u64, 17u64, 0u32), (9, 4096, 0), (9, 4096, 37)] {
+            check::<1>(seed, pixel, s0, 1);
+        }
         // The independent packet draws each lane's stream in call order.
-        let mut p = IndependentPacket::start(5, 8, 16, 3);
+        let mut p = IndependentPacket::<LANES>::start(5, 8, 16, 3);
         let mut r = Rng::for_stream(5, &[8, 17]);
         let want: Vec<f32> = (0..9).map(|_| r.f32()).collect();
         let [u, v] = p.camera(1);
