@@ -3,10 +3,10 @@
 //! Layers (pbrt-style): [`render`] (pixels in parallel with rayon, at least a row per task) →
 //! `render_pixel` (samples of one pixel) → `trace_packet` (up to [`PACKET`] camera paths of
 //! that pixel in lockstep, one vertex at a time, so that their camera, shadow and continuation
-//! rays share BVH traversals as packets). `trace_packet` is compiled for packets of [`PACKET`]
-//! lanes and of one lane: a 1-spp render (the first frames of a progressive preview) takes the
-//! second, whose per-lane arrays and sample numbers cost one lane rather than sixteen (−14 %
-//! render time at 1 spp, BENCHMARKS.md).
+//! rays share BVH traversals as packets). `trace_packet` is compiled for packets of [`PACKET`],
+//! 4 and 1 lanes, and a pixel's samples take the narrowest that holds them: the per-lane arrays
+//! and sample numbers of a low-spp render (the first frames of a progressive preview) cost the
+//! lanes it uses rather than sixteen (−14 % render time at 1 spp, −4 % at 4, BENCHMARKS.md).
 //!
 //! Random numbers ([`crate::sampler`], chosen by [`Renderer::sampler`]): each `(pixel, sample)`
 //! asks for its uniforms by *dimension*, fixed per decision and bounce — pixel position
@@ -170,11 +170,12 @@ impl Renderer {
         let spp = self.opts.spp as usize;
         for s0 in (0..spp).step_by(PACKET) {
             let n = PACKET.min(spp - s0);
-            if n == 1 {
-                // A 1-spp render's packets: one lane, without the bookkeeping of the others.
-                self.trace_packet::<1>(x, y, pixel, s0, n, &mut acc);
-            } else {
-                self.trace_packet::<PACKET>(x, y, pixel, s0, n, &mut acc);
+            // Low-spp renders' packets: as few lanes as they need, without the bookkeeping
+            // (and the sample numbers) of the others.
+            match n {
+                1 => self.trace_packet::<1>(x, y, pixel, s0, n, &mut acc),
+                2..=4 => self.trace_packet::<4>(x, y, pixel, s0, n, &mut acc),
+                _ => self.trace_packet::<PACKET>(x, y, pixel, s0, n, &mut acc),
             }
         }
         acc

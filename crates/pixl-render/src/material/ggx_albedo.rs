@@ -190,7 +190,10 @@ impl GgxAlbedo<'_> {
     }
 
     /// [`GgxAlbedo::s_dielectric`] with the `η` slice located beforehand (per material).
-    #[inline]
+    /// Always inlined: called from `Bsdf::new` in the pixel kernel, which an out-of-line call
+    /// would leave for the baseline build (LLVM stopped inlining it once the kernel held both
+    /// packet widths).
+    #[inline(always)]
     pub fn s_dielectric_at(&self, rough: f32, mu: f32, eta: EtaCell) -> f32 {
         let (z0, z1, t) = eta.0;
         let n2 = NS * NS;
