@@ -661,11 +661,15 @@ mod tests {
     #[test]
     fn lockstep_packets_equal_paths_traced_one_by_one() {
         let scene = Scene::from_toml_str(SCENE).expect("scene");
+        // Full packets, a partial one of 16 lanes (21 = 16 + 5), of 4 lanes (3; 20 = 16 + 4).
         for (spp, sampler) in [
             (16, Sampler::Sobol),
             (21, Sampler::Sobol),
+            (3, Sampler::Sobol),
+            (20, Sampler::Sobol),
             (16, Sampler::Independent),
             (21, Sampler::Independent),
+            (3, Sampler::Independent),
         ] {
             let opts = RenderOptions {
                 spp,
@@ -689,10 +693,12 @@ mod tests {
                     packed += (together.ind.iter().any(|v| v.max_comp() > 0.0)) as usize;
                 }
             }
-            // The scene exercises what it should: lit pixels and indirect light.
+            // The scene exercises what it should: lit pixels and indirect light (in fewer
+            // pixels with 3 samples).
             let n = (r.width * r.height) as usize;
+            let want = if spp >= 16 { n / 4 } else { n / 16 };
             assert!(
-                lit == n && packed > n / 4,
+                lit == n && packed > want,
                 "lit {lit}, with indirect light {packed} of {n}"
             );
         }
