@@ -200,6 +200,9 @@ impl Renderer {
     /// the estimator and the order of its float operations are those of a path traced alone.
     #[inline(always)]
     fn trace_packet<const L: usize>(&self, x: usize, y: usize, pixel: u64, s0: usize, n: usize, acc: &mut PixelSum) {
+        // A batch's rays fill the first slots of one `RayPack`.
+        const { assert!(L >= 1 && L <= PACKET) };
+        debug_assert!(n >= 1 && n <= L);
         let geom = &self.geom;
         let lights = &self.lights;
         let mut sums = [PixelSum::default(); L];
