@@ -50,7 +50,6 @@
 //! **Independent**: the earlier sampler, kept for comparisons: each `(pixel, sample)` draws from
 //! its own stream `Rng::for_stream(seed, [pixel, sample])` in call order, giving bit for bit
 //! the images it gave before.
-use crate::bvh::PACKET;
 use pixl_core::Rng;
 
 /// Which sample generator a render uses.
@@ -163,10 +162,6 @@ impl<const L: usize> PacketSampler<L> {
         dispatch!(self, p => p.bsdf(lane))
     }
 }
-
-/// Lanes of a full packet: the integrator's packets of [`PACKET`] samples (a 1-spp render's
-/// packets have one lane).
-pub const LANES: usize = PACKET;
 
 /// [`Sampler::Independent`]: each lane's own stream, drawn in call order.
 pub struct IndependentPacket<const L: usize> {
@@ -630,13 +625,13 @@ mod tests {
             }
         }
         for (seed, pixel, s0, n) in [(3u64, 17u64, 0u32, 16usize), (3, 17, 16, 16), (9, 4096, 32, 5)] {
-            check::<LANES>(seed, pixel, s0, n);
+            check::<{ crate::bvh::PACKET }>(seed, pixel, s0, n);
         }
         for (seed, pixel, s0) in [(3u64, 17u64, 0u32), (9, 4096, 0), (9, 4096, 37)] {
             check::<1>(seed, pixel, s0, 1);
         }
         // The independent packet draws each lane's stream in call order.
-        let mut p = IndependentPacket::<LANES>::start(5, 8, 16, 3);
+        let mut p = IndependentPacket::<{ crate::bvh::PACKET }>::start(5, 8, 16, 3);
         let mut r = Rng::for_stream(5, &[8, 17]);
         let want: Vec<f32> = (0..9).map(|_| r.f32()).collect();
         let [u, v] = p.camera(1);

@@ -191,8 +191,8 @@ impl GgxAlbedo<'_> {
 
     /// [`GgxAlbedo::s_dielectric`] with the `η` slice located beforehand (per material).
     /// Always inlined: called from `Bsdf::new` in the pixel kernel, which an out-of-line call
-    /// would leave for the baseline build (LLVM stopped inlining it once the kernel held both
-    /// packet widths).
+    /// would leave for the baseline build (LLVM stopped inlining it once the kernel held more
+    /// than one packet width).
     #[inline(always)]
     pub fn s_dielectric_at(&self, rough: f32, mu: f32, eta: EtaCell) -> f32 {
         let (z0, z1, t) = eta.0;
