@@ -138,7 +138,41 @@ pub fn synth_coarse_albedo(root: &Path) -> Option<CoarseAlbedo> {
 impl Synth {
     /// The scenes of `split` listed in the manifest under `root`, sorted by name, each with every
     /// image it lists (possibly fewer than two); an error if a listed file is missing.
+    ///
+    /// A `root` without a manifest is read as a *folder of sets*: every subfolder that holds a
+    /// `scenes.json` is one `pixl synth` output, its scenes named `<subfolder>/<scene>` (sorted
+    /// by subfolder, then scene). Subfolders without a manifest yet — a `pixl synth` still at
+    /// work — are left out, so reading the folder again later finds the sets finished since.
     pub(crate) fn scan(root: &Path, split: Split) -> Result<Vec<SceneEntry>> {
+        if !root.join(MANIFEST).exists() && root.is_dir() {
+            let sets: Vec<_> = sorted_dir(root)?
+                .into_iter()
+                .filter(|p| p.join(MANIFEST).is_file())
+                .collect();
+            if sets.is_empty() {
+                return Err(DataError::Dataset {
+                    root: root.to_owned(),
+                    reason: format!(
+                        "no {MANIFEST}: neither a `pixl synth` output nor a folder of them (none of its \
+                         subfolders has a finished set yet)"
+                    ),
+                });
+            }
+            let mut scenes = Vec::new();
+            for set in sets {
+                let prefix = set.file_name().and_then(|n| n.to_str()).unwrap_or("set").to_string();
+                for mut s in Self::scan_set(&set, split)? {
+                    s.name = format!("{prefix}/{}", s.name);
+                    scenes.push(s);
+                }
+            }
+            return Ok(scenes);
+        }
+        Self::scan_set(root, split)
+    }
+
+    /// One `pixl synth` output (see [`Synth::scan`]).
+    fn scan_set(root: &Path, split: Split) -> Result<Vec<SceneEntry>> {
         let path = root.join(MANIFEST);
         let text = std::fs::read_to_string(&path).map_err(|e| DataError::io(&path, e))?;
         let manifest: SynthManifest = serde_json::from_str(&text).map_err(|e| DataError::File {

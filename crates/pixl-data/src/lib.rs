@@ -13,7 +13,9 @@
 //! - `vidit:ROOT`: `ROOT/Image<NNN>_<temp>_<dir>.png`, one scene per `<NNN>`.
 //! - `folder:ROOT`: `ROOT/<scene>/*.(png|jpg|jpeg|exr)`, excluding `*.intrinsics.exr`.
 //! - `synth:ROOT`: the output of `pixl synth` (`ROOT/scenes.json` + `ROOT/<scene>/*.png` each with
-//!   its exact `*.intrinsics.exr`).
+//!   its exact `*.intrinsics.exr`), or a folder of such outputs (`ROOT/<set>/scenes.json`; scenes
+//!   named `<set>/<scene>`; sets without a manifest yet are left out, so a set that grows by
+//!   new `pixl synth` runs is read again with what has finished since).
 //!
 //! Splits for the datasets without an official one (BigTime, VIDIT, folder): if `ROOT/test.txt`
 //! exists it lists the test scenes (one name a line); otherwise, over the sorted scene names, every

@@ -149,3 +149,58 @@ fn bad_specs_are_explained() {
         .to_string();
     assert!(e.contains("/definitely/not/here"), "{e}");
 }
+
+/// Writes a minimal `pixl synth` output at `root`: `scenes` scenes of two lightings each, scene
+/// `i` test when `test(i)`.
+fn fake_synth_set(root: &Path, scenes: usize, test: impl Fn(usize) -> bool) {
+    let mut records = Vec::new();
+    for i in 0..scenes {
+        let name = format!("scene{i:04}");
+        let mut images = Vec::new();
+        for k in 0..2 {
+            let (img, ct) = (
+                format!("{name}/light_{k}.png"),
+                format!("{name}/light_{k}.intrinsics.exr"),
+            );
+            png(&root.join(&img), 4, 4, 0.1 * k as f32);
+            write_ct(&root.join(&ct), 4, 4, |_, _, c| c as f32);
+            images.push(serde_json::json!({"image": img, "intrinsics": ct, "lighting": "sun"}));
+        }
+        let split = if test(i) { "test" } else { "train" };
+        records.push(serde_json::json!({"name": name, "split": split, "images": images}));
+    }
+    let manifest = serde_json::json!({"version": 1, "seed": 0, "size": 4, "spp": 1, "scenes": records});
+    std::fs::write(root.join("scenes.json"), manifest.to_string()).unwrap();
+}
+
+/// A folder of `pixl synth` outputs reads as one set whose scenes are prefixed by their
+/// subfolder; a subfolder still being written (no manifest) is left out until it has one.
+#[test]
+fn synth_folder_of_sets_grows_as_sets_finish() {
+    let dir = tempfile::tempdir().unwrap();
+    let r = dir.path();
+    let spec = format!("synth:{}", r.display());
+    let e = data::open(&spec, Split::All).err().unwrap().to_string();
+    assert!(e.contains("scenes.json"), "{e}");
+
+    fake_synth_set(&r.join("b"), 2, |i| i == 1);
+    png(&r.join("a/scene0000/light_0.png"), 4, 4, 0.3); // a set at work: no manifest yet
+    assert_eq!(
+        names(data::open(&spec, Split::All).unwrap().as_ref()),
+        ["b/scene0000", "b/scene0001"]
+    );
+    assert_eq!(
+        names(data::open(&spec, Split::Train).unwrap().as_ref()),
+        ["b/scene0000"]
+    );
+
+    fake_synth_set(&r.join("a"), 1, |_| false);
+    let all = data::open(&spec, Split::All).unwrap();
+    assert_eq!(names(all.as_ref()), ["a/scene0000", "b/scene0000", "b/scene0001"]);
+    assert_eq!(all.scenes()[0].images[1].image, r.join("a/scene0000/light_1.png"));
+    assert_eq!(
+        all.scenes()[2].images[0].intrinsics.as_deref(),
+        Some(r.join("b/scene0001/light_0.intrinsics.exr").as_path())
+    );
+    assert_eq!(names(data::open(&spec, Split::Test).unwrap().as_ref()), ["b/scene0001"]);
+}

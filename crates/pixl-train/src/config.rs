@@ -9,6 +9,7 @@
 //! dataset = "synth:data/synth"   # see pixl_data::open
 //! split = "train"
 //! cache = true                   # keep decoded images in memory
+//! refresh_every = 0              # re-read the data set every N steps and add new scenes (0: never)
 //! [data.sampler]
 //! long_side = 512
 //! coarse_ct = 0.0                # P(condition on `pixl synth --coarse`'s C_T of the pair), 0 = paper
@@ -27,6 +28,9 @@
 //! [run]
 //! out_dir = "runs/tiny"
 //! steps = 200000
+//! max_minutes = 8.0              # optional: stop after this much training time (then the cosine
+//!                                # runs over the time, not total_steps)
+//! checkpoint_minutes = 2.0       # optional: also checkpoint whenever this much time has passed
 //! ```
 use crate::error::{Result, TrainError};
 use crate::optim::{AdamWConfig, LrSchedule};
@@ -75,6 +79,10 @@ pub struct DataSection {
     pub dataset: String,
     pub split: Split,
     pub cache: bool,
+    /// Every this many steps, read the data set again and add the scenes that appeared since
+    /// (a set still being made, e.g. a folder of `pixl synth` outputs that grows while the run
+    /// reads it); 0 (default): read once. A growing set is not bit-exactly resumable.
+    pub refresh_every: u64,
     pub sampler: SamplerConfig,
 }
 
@@ -84,6 +92,7 @@ impl Default for DataSection {
             dataset: String::new(),
             split: Split::Train,
             cache: true,
+            refresh_every: 0,
             sampler: SamplerConfig::default(),
         }
     }
@@ -160,6 +169,14 @@ pub struct RunSection {
     pub log_every: u64,
     pub sample_every: u64,
     pub checkpoint_every: u64,
+    /// Stop after this many minutes of training (counted from the first step; the step under way
+    /// finishes). With it, the learning rate's cosine runs over this time instead of
+    /// `[optim.schedule] total_steps` ([`crate::optim::LrSchedule::lr_at_progress`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_minutes: Option<f64>,
+    /// Also write a checkpoint whenever this many minutes have passed since the last one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub checkpoint_minutes: Option<f64>,
 }
 
 impl Default for RunSection {
@@ -171,6 +188,8 @@ impl Default for RunSection {
             log_every: 10,
             sample_every: 1000,
             checkpoint_every: 1000,
+            max_minutes: None,
+            checkpoint_minutes: None,
         }
     }
 }
@@ -211,6 +230,18 @@ impl TrainConfig {
         }
         if self.run.checkpoint_every == 0 || self.run.log_every == 0 || self.run.sample_every == 0 {
             return bad("[run] log_every, sample_every and checkpoint_every must be at least 1");
+        }
+        for (key, v) in [
+            ("max_minutes", self.run.max_minutes),
+            ("checkpoint_minutes", self.run.checkpoint_minutes),
+        ] {
+            if let Some(v) = v {
+                if !(v.is_finite() && v > 0.0) {
+                    return Err(TrainError::Config(format!(
+                        "[run] {key} must be a positive number of minutes (got {v})"
+                    )));
+                }
+            }
         }
         self.data.sampler.validate()
     }

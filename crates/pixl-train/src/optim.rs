@@ -47,6 +47,25 @@ impl LrSchedule {
             };
         }
         let t = (step - self.warmup_steps) as f64 / (self.total_steps - self.warmup_steps) as f64;
+        self.cosine(t)
+    }
+
+    /// The rate of a run paced by time rather than by `total_steps` (`[run] max_minutes`): the
+    /// same linear warm-up over `warmup_steps`, then the cosine at `progress` ∈ [0, 1], the
+    /// fraction of the time after the warm-up that has passed (clamped).
+    pub fn lr_at_progress(&self, step: u64, progress: f64) -> f64 {
+        if step < self.warmup_steps {
+            return self.peak_lr * step as f64 / self.warmup_steps as f64;
+        }
+        self.cosine(if progress.is_nan() {
+            0.0
+        } else {
+            progress.clamp(0.0, 1.0)
+        })
+    }
+
+    /// Cosine from `peak_lr` at `t = 0` to `final_lr` at `t = 1`.
+    fn cosine(&self, t: f64) -> f64 {
         self.final_lr + 0.5 * (self.peak_lr - self.final_lr) * (1.0 + (std::f64::consts::PI * t).cos())
     }
 }

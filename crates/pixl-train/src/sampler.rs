@@ -279,6 +279,30 @@ impl Sampler {
         &self.scenes
     }
 
+    /// Adds the scenes of `scenes` whose names are not in the sampler yet (a data set that grows
+    /// while a run reads it: `[data] refresh_every`); returns how many were added. From the next
+    /// draw on, the epoch permutations run over all scenes, old and new alike, so the draws of
+    /// later steps differ from those of a run that had every scene from the start. Scenes with
+    /// fewer than two images are skipped.
+    pub fn add_scenes(&mut self, scenes: Vec<SceneEntry>) -> usize {
+        let known: std::collections::HashSet<String> = self.scenes.iter().map(|s| s.name.clone()).collect();
+        let new: Vec<SceneEntry> = scenes
+            .into_iter()
+            .filter(|s| s.images.len() >= 2 && !known.contains(&s.name))
+            .collect();
+        let wants_coarse = self.cfg.coarse_ct > 0.0 || self.cfg.coarse_pair_share > 0.0;
+        let (coarse, pairs) = if wants_coarse {
+            find_coarse_pairs(&new)
+        } else {
+            (vec![Vec::new(); new.len()], 0)
+        };
+        let added = new.len();
+        self.scenes.extend(new);
+        self.coarse.extend(coarse);
+        self.pairs += pairs;
+        added
+    }
+
     pub fn config(&self) -> &SamplerConfig {
         &self.cfg
     }

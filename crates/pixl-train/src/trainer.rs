@@ -7,6 +7,12 @@
 //! prediction | target), `train-state.safetensors` (full resumable state, [`crate::state`]) and
 //! `model.safetensors` (weights only, loadable by `pixl_model::load`).
 //!
+//! A run can be bounded by time (`[run] max_minutes`: the cosine of the learning rate then runs
+//! over the time, [`LrSchedule::lr_at_progress`]), checkpoint by time as well as by steps
+//! (`[run] checkpoint_minutes`), and read a data set that grows while it trains (`[data]
+//! refresh_every`: the set is opened again every so many steps and its new scenes join the
+//! sampler, [`Sampler::add_scenes`]; logged as `{"event": "data", ...}`).
+//!
 //! Precision (`[optim] precision`): f32 by default; `bf16` computes each micro-batch with a bf16
 //! copy of the f32 master weights ([`crate::precision`]), gradients and AdamW stay f32.
 //! `[optim] checkpoint = true` recomputes every encoder/trunk block in the backward pass
@@ -27,7 +33,7 @@ use pixl_model::{Config, PixlRelight};
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 const STREAM_AUGMENT: u64 = 0xA06;
 
@@ -56,6 +62,23 @@ pub struct Trainer {
     device: Device,
     /// Optimiser steps completed.
     pub step: u64,
+    /// The clock of a run bounded by time (`[run] max_minutes`), started by [`Trainer::run`].
+    clock: Option<Clock>,
+}
+
+/// When a time-bounded run started, how long it may take, and the fraction of that time that had
+/// passed when the warm-up ended (the cosine runs over the rest).
+#[derive(Clone, Copy, Debug)]
+struct Clock {
+    start: Instant,
+    budget: Duration,
+    warmup_end: Option<f64>,
+}
+
+impl Clock {
+    fn fraction(&self) -> f64 {
+        self.start.elapsed().as_secs_f64() / self.budget.as_secs_f64().max(1e-9)
+    }
 }
 
 /// Overwrites the fresh weights in `varmap` with those of checkpoint `path`, which must store
@@ -142,6 +165,7 @@ impl Trainer {
             perceptual,
             device: device.clone(),
             step: 0,
+            clock: None,
         })
     }
 
@@ -154,7 +178,9 @@ impl Trainer {
             reason: format!("checkpoint {what} {a:?} differs from this run's {b:?}; resume needs the same setup"),
         };
         let fp = fingerprint(self.sampler.scenes());
-        if st.meta.data_fingerprint != fp {
+        if self.cfg.data.refresh_every > 0 {
+            tracing::info!("[data] refresh_every: the data set may have grown since the checkpoint; not compared");
+        } else if st.meta.data_fingerprint != fp {
             return Err(mismatch("data set", &st.meta.data_fingerprint, &fp));
         }
         if st.meta.seed != self.cfg.run.seed {
@@ -197,6 +223,45 @@ impl Trainer {
 
     pub fn schedule(&self) -> &LrSchedule {
         &self.cfg.optim.schedule
+    }
+
+    /// The scenes the sampler draws from (more after a refresh of a growing set).
+    pub fn scenes(&self) -> &[SceneEntry] {
+        self.sampler.scenes()
+    }
+
+    pub fn sampler(&self) -> &Sampler {
+        &self.sampler
+    }
+
+    /// Opens the data set again and adds its new scenes to the sampler (`[data] refresh_every`);
+    /// returns how many joined. Only scenes with all their files are listed by the data sets, and
+    /// a set that cannot be read right now (say, a manifest being replaced) adds nothing.
+    pub fn refresh_data(&mut self) -> usize {
+        match pixl_data::open(&self.cfg.data.dataset, self.cfg.data.split) {
+            Ok(ds) => self.sampler.add_scenes(ds.scenes().to_vec()),
+            Err(e) => {
+                tracing::warn!(
+                    "reading the data set again: {e}; keeping the {} scenes",
+                    self.sampler.scenes().len()
+                );
+                0
+            }
+        }
+    }
+
+    /// The learning rate of the coming step: by step, or by time in a time-bounded run.
+    fn lr_now(&mut self) -> f64 {
+        let schedule = &self.cfg.optim.schedule;
+        let Some(clock) = self.clock.as_mut() else {
+            return schedule.lr(self.step);
+        };
+        let f = clock.fraction();
+        if self.step < schedule.warmup_steps {
+            return schedule.lr(self.step);
+        }
+        let w = *clock.warmup_end.get_or_insert(f);
+        schedule.lr_at_progress(self.step, (f - w) / (1.0 - w).max(1e-9))
     }
 
     /// Writes the training state and the weights-only model file (both atomically).
@@ -246,7 +311,7 @@ impl Trainer {
     pub fn train_step(&mut self) -> Result<StepReport> {
         let t0 = Instant::now();
         let accum = self.cfg.optim.accumulate;
-        let lr = self.cfg.optim.schedule.lr(self.step);
+        let lr = self.lr_now();
         let mut grads: Vec<Option<Tensor>> = vec![None; self.opt.params.len()];
         let vars: Vec<Var> = self.opt.params.iter().map(|p| p.var.clone()).collect();
         let (mut loss_sum, mut l1_sum, mut perc_sum, mut images) = (0.0f32, 0.0f32, None::<f32>, 0usize);
@@ -338,8 +403,9 @@ impl Trainer {
         Ok(vstack(&grid_rows))
     }
 
-    /// Trains until `cfg.run.steps`, logging, writing sample grids and checkpoints; `on_step` sees
-    /// every step (for a progress bar). A final checkpoint is written at the end.
+    /// Trains until `cfg.run.steps` (or `[run] max_minutes`), logging, writing sample grids and
+    /// checkpoints, reading a growing data set again; `on_step` sees every step (for a progress
+    /// bar). A final checkpoint is written at the end.
     pub fn run(&mut self, mut on_step: impl FnMut(&StepReport)) -> Result<()> {
         let out = self.cfg.run.out_dir.clone();
         std::fs::create_dir_all(out.join("samples")).map_err(|e| TrainError::io(&out, e))?;
@@ -351,10 +417,30 @@ impl Trainer {
             .map_err(|e| TrainError::io(&log_path, e))?;
         let start = serde_json::json!({"event": "start", "step": self.step, "l1_only": self.perceptual.is_none()});
         writeln!(log, "{start}").map_err(|e| TrainError::io(&log_path, e))?;
-        while self.step < self.cfg.run.steps {
+        let minutes = |m: f64| Duration::from_secs_f64(m * 60.0);
+        self.clock = self.cfg.run.max_minutes.map(|m| Clock {
+            start: Instant::now(),
+            budget: minutes(m),
+            warmup_end: None,
+        });
+        let every = self.cfg.run.checkpoint_minutes.map(minutes);
+        let mut last_checkpoint = Instant::now();
+        while self.step < self.cfg.run.steps && self.clock.is_none_or(|c| c.fraction() < 1.0) {
             let report = self.train_step()?;
             on_step(&report);
             let s = report.step;
+            let refresh = self.cfg.data.refresh_every;
+            if refresh > 0 && s % refresh == 0 {
+                let added = self.refresh_data();
+                if added > 0 {
+                    tracing::info!(
+                        "{added} new scene(s) joined the data set ({} in all)",
+                        self.sampler.scenes().len()
+                    );
+                    let line = serde_json::json!({"event": "data", "step": s, "added": added, "scenes": self.sampler.scenes().len()});
+                    writeln!(log, "{line}").map_err(|e| TrainError::io(&log_path, e))?;
+                }
+            }
             if s % self.cfg.run.log_every == 0 || s == self.cfg.run.steps {
                 let line = serde_json::to_string(&report).map_err(|e| TrainError::Other(e.to_string()))?;
                 writeln!(log, "{line}").map_err(|e| TrainError::io(&log_path, e))?;
@@ -367,9 +453,15 @@ impl Trainer {
                     pixl_core::io::PngDepth::Eight,
                 )?;
             }
-            if s % self.cfg.run.checkpoint_every == 0 {
+            if s % self.cfg.run.checkpoint_every == 0 || every.is_some_and(|d| last_checkpoint.elapsed() >= d) {
                 self.save_checkpoint()?;
+                last_checkpoint = Instant::now();
             }
+        }
+        if self.step < self.cfg.run.steps {
+            let line =
+                serde_json::json!({"event": "time_limit", "step": self.step, "max_minutes": self.cfg.run.max_minutes});
+            writeln!(log, "{line}").map_err(|e| TrainError::io(&log_path, e))?;
         }
         self.save_checkpoint()
     }

@@ -26,6 +26,13 @@ fn schedule_matches_closed_form() {
     assert!((s.lr(q) - expect).abs() < 1e-15);
     // monotone decreasing after warm-up
     assert!((2_501..200_000).step_by(997).all(|k| s.lr(k) <= s.lr(k - 1)));
+    // paced by time: the same warm-up, then the cosine at the fraction of time passed
+    assert_eq!(s.lr_at_progress(1250, 0.9), s.lr(1250));
+    assert!((s.lr_at_progress(2_500, 0.0) - peak).abs() < 1e-18);
+    assert!((s.lr_at_progress(9_999, 0.5) - (peak + fin) / 2.0).abs() < 1e-15);
+    assert!((s.lr_at_progress(3_000, 0.25) - expect).abs() < 1e-15);
+    assert!((s.lr_at_progress(3_000, 1.0) - fin).abs() < 1e-18);
+    assert_eq!(s.lr_at_progress(3_000, 7.0), s.lr_at_progress(3_000, 1.0));
 }
 
 #[test]
@@ -271,4 +278,79 @@ fn tiny_overfits_a_single_pair() {
         }
     }
     assert!(best > 30.0, "best PSNR {best:.2} dB (identity at init: {start:.2} dB)");
+}
+
+/// `[data] refresh_every`: scenes that appear in the data set while a run trains join the
+/// sampler at the next refresh and are drawn (and read) from then on; the log records when.
+#[test]
+fn scenes_added_during_a_run_join_the_sampler() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, later) = (dir.path().join("data"), dir.path().join("later"));
+    fake_set(&data, 1, 2, 32);
+    fake_set(&later, 3, 2, 32);
+    let mut cfg = small_config(&data, &dir.path().join("run"));
+    cfg.data.refresh_every = 3;
+    cfg.run.steps = 12;
+    let mut t = Trainer::new(cfg, &Device::Cpu).unwrap();
+    assert_eq!(t.scenes().len(), 1);
+    let mut steps = Vec::new();
+    t.run(|r| {
+        steps.push(r.step);
+        if r.step == 1 {
+            // finished scenes appear whole (a rename), as a set finished by `pixl synth` does
+            for s in ["scene1", "scene2"] {
+                std::fs::rename(later.join(s), data.join(s)).unwrap();
+            }
+        }
+    })
+    .unwrap();
+    assert_eq!(steps, (1..=12).collect::<Vec<_>>());
+    let names: Vec<&str> = t.scenes().iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(names, ["scene0", "scene1", "scene2"]);
+    // after the refresh at step 3, the draws (made with all three scenes) reach the new ones
+    let drawn: std::collections::BTreeSet<usize> = (3..12)
+        .flat_map(|step| (0..2).map(move |i| (step, i)))
+        .map(|(step, i)| t.sampler().scene_of(step, i))
+        .collect();
+    assert!(drawn.contains(&1) && drawn.contains(&2), "{drawn:?}");
+    let log = std::fs::read_to_string(dir.path().join("run/log.jsonl")).unwrap();
+    let events: Vec<serde_json::Value> = log
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|v| v["event"] == "data")
+        .collect();
+    assert_eq!(events.len(), 1, "{log}");
+    assert_eq!(
+        (events[0]["step"].as_u64(), events[0]["added"].as_u64()),
+        (Some(3), Some(2))
+    );
+}
+
+/// `[run] max_minutes`: the run stops when its time is up, well before `[run] steps`, writes its
+/// checkpoint and says why in the log.
+#[test]
+fn a_time_limit_stops_the_run_with_a_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    fake_set(&dir.path().join("data"), 2, 2, 32);
+    let mut cfg = small_config(&dir.path().join("data"), &dir.path().join("run"));
+    cfg.run.steps = 1_000_000;
+    cfg.run.max_minutes = Some(0.5 / 60.0);
+    let mut t = Trainer::new(cfg, &Device::Cpu).unwrap();
+    let t0 = std::time::Instant::now();
+    let mut lrs = Vec::new();
+    t.run(|r| lrs.push(r.lr)).unwrap();
+    assert!(t0.elapsed().as_secs_f64() < 30.0);
+    assert!(t.step >= 1 && t.step < 1_000_000);
+    assert!(t.model_path().is_file() && t.state_path().is_file());
+    let log = std::fs::read_to_string(dir.path().join("run/log.jsonl")).unwrap();
+    assert!(log.contains("\"event\":\"time_limit\""), "{log}");
+    // the warm-up is by steps (5), then the rate only falls
+    assert!(
+        lrs.iter()
+            .take(5)
+            .enumerate()
+            .all(|(k, &lr)| (lr - 1e-3 * k as f64 / 5.0).abs() < 1e-12),
+        "{lrs:?}"
+    );
+    assert!(lrs.windows(2).skip(5).all(|w| w[1] <= w[0]), "{lrs:?}");
 }

@@ -16,14 +16,14 @@ use std::path::{Path, PathBuf};
 pixl train --config train.toml --init-weights assets/demo-weights/pixl-tiny-synth.safetensors\n\n\
 train.toml (every key optional; defaults are the paper's settings):\n  \
 [model]           preset = \"tiny\" | \"small\" | \"paper\" | a model config file; init_seed; init_weights (fine-tune)\n  \
-[data]            dataset = \"KIND:ROOT\" (kinds below); split = \"train\"; cache = true\n  \
+[data]            dataset = \"KIND:ROOT\" (kinds below); split = \"train\"; cache = true; refresh_every = 0 (N: add new scenes every N steps)\n  \
 [data.sampler]    long_side = 512; multiple; min_scale; aspect_min; aspect_max; flip; coarse_ct; coarse_pair_share\n  \
 [optim]           batch_size = 4; accumulate = 1; clip_norm = 1.0; precision = \"f32\" | \"bf16\"; checkpoint = false\n  \
 [optim.schedule]  peak_lr = 5e-5; final_lr; warmup_steps; total_steps\n  \
 [optim.adamw]     beta1; beta2; eps; weight_decay\n  \
 [loss]            perceptual_weight = 0.2 (0: L1 only, no VGG weights needed); vgg = \"vgg16.safetensors\"\n  \
 [augment]         enabled = true (corrupt C_T on the fly with the paper's App. C pipeline; see `pixl augment`)\n  \
-[run]             out_dir; steps; seed; log_every; sample_every; checkpoint_every\n\
+[run]             out_dir; steps; seed; log_every; sample_every; checkpoint_every; max_minutes; checkpoint_minutes\n\
 An example: assets/demo-weights/train.toml (the run of the bundled demo weights).\n\n",
 crate::dataset_kinds_help!())
 )]
@@ -46,6 +46,13 @@ pub struct Args {
     /// Override `[run] out_dir`.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Stop after this many minutes of training (`[run] max_minutes`; the learning rate's cosine
+    /// then runs over the time).
+    #[arg(long, value_parser = positive_minutes)]
+    pub minutes: Option<f64>,
+    /// Also checkpoint whenever this many minutes have passed (`[run] checkpoint_minutes`).
+    #[arg(long, value_parser = positive_minutes)]
+    pub checkpoint_minutes: Option<f64>,
     /// Fine-tune: start from these weights (`[model] init_weights`; the checkpoint's model
     /// config must match `[model] preset`). Ignored with `--resume`.
     #[arg(long)]
@@ -76,6 +83,12 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     }
     if let Some(o) = args.out {
         cfg.run.out_dir = o;
+    }
+    if let Some(m) = args.minutes {
+        cfg.run.max_minutes = Some(m);
+    }
+    if let Some(m) = args.checkpoint_minutes {
+        cfg.run.checkpoint_minutes = Some(m);
     }
     check_out_dir(&cfg, &args.config)?;
     let device = crate::device::parse_device(&args.device)?;
@@ -136,6 +149,8 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "resumed": args.resume,
             "start_step": start_step,
             "step": trainer.step,
+            "stopped_by": if trainer.step >= cfg.run.steps { "steps" } else { "time" },
+            "scenes": trainer.scenes().len(),
             "final_loss": last_loss,
             "weights": trainer.model_path().display().to_string(),
             "state": trainer.state_path().display().to_string(),
@@ -148,6 +163,13 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         trainer.model_path().display()
     ));
     Ok(())
+}
+
+fn positive_minutes(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("{s:?} is not a positive number of minutes")),
+    }
 }
 
 /// The run's folder, checked before any work: creatable and writable, and the weights and state
@@ -174,12 +196,14 @@ fn check_out_dir(cfg: &pixl_train::TrainConfig, config: &Path) -> anyhow::Result
 /// `key: old → new`, leaving out those a resumed run may change freely (its length, output
 /// directory and logging / checkpoint intervals). Unparseable text compares as empty.
 fn changed_settings(before: &str, after: &str) -> Vec<String> {
-    const FREE: [&str; 5] = [
+    const FREE: [&str; 7] = [
         "run.steps",
         "run.out_dir",
         "run.log_every",
         "run.sample_every",
         "run.checkpoint_every",
+        "run.max_minutes",
+        "run.checkpoint_minutes",
     ];
     fn flatten(prefix: &str, v: &toml::Value, out: &mut std::collections::BTreeMap<String, String>) {
         match v {
