@@ -42,6 +42,9 @@ enum Command {
     /// Create or inspect network weights.
     #[command(subcommand)]
     Model(cmd::model::Command),
+    /// Split weights into parts of bounded size (e.g. 16 MiB, optionally as f16/bf16) and join them back.
+    #[command(subcommand)]
+    Weights(cmd::weights::Command),
     /// Benchmarks (paper timing protocol: warm-ups, then timed runs).
     #[command(subcommand)]
     Bench(cmd::bench::Command),
@@ -123,6 +126,7 @@ fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
         Command::Demo(a) => cmd::demo::run(a, ctx),
         Command::Relight(a) => cmd::relight::run(a, ctx),
         Command::Model(c) => cmd::model::run(c, ctx),
+        Command::Weights(c) => cmd::weights::run(c, ctx),
         Command::Bench(c) => cmd::bench::run(c, ctx),
         Command::Compose(a) => cmd::compose::run(a, ctx),
         Command::Intrinsics(c) => cmd::intrinsics::run(c, ctx),

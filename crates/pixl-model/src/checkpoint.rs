@@ -270,7 +270,7 @@ pub fn save_tensors(path: &Path, tensors: &HashMap<String, Tensor>, cfg: &Config
 
 /// Compares what a file holds (name → (shape, dtype)) with what is expected (name → shape, all
 /// of `dtype`). The first problem, in a fixed order (missing, unexpected, shape, dtype), wins.
-fn check_against(
+pub(crate) fn check_against(
     path: &Path,
     expected: &BTreeMap<String, Vec<usize>>,
     found: &BTreeMap<String, (Vec<usize>, String)>,
@@ -315,14 +315,14 @@ fn check_against(
     Ok(())
 }
 
-fn read_bytes(path: &Path) -> Result<Vec<u8>> {
+pub(crate) fn read_bytes(path: &Path) -> Result<Vec<u8>> {
     std::fs::read(path).map_err(|source| CheckpointError::Io {
         path: path.to_owned(),
         source,
     })
 }
 
-fn config_from_metadata(path: &Path, meta: Option<&HashMap<String, String>>) -> Result<(Config, String)> {
+pub(crate) fn config_from_metadata(path: &Path, meta: Option<&HashMap<String, String>>) -> Result<(Config, String)> {
     let meta = meta.ok_or_else(|| CheckpointError::MissingConfig { path: path.to_owned() })?;
     let json = meta
         .get("config")
@@ -344,12 +344,16 @@ fn config_from_metadata(path: &Path, meta: Option<&HashMap<String, String>>) -> 
 }
 
 /// A parsed, fully validated checkpoint.
-struct Parsed<'a> {
-    cfg: Config,
-    tensors: safetensors::SafeTensors<'a>,
+pub(crate) struct Parsed<'a> {
+    pub(crate) cfg: Config,
+    pub(crate) tensors: safetensors::SafeTensors<'a>,
 }
 
-fn parse<'a>(path: &Path, bytes: &'a [u8], expected: Option<&BTreeMap<String, Vec<usize>>>) -> Result<Parsed<'a>> {
+pub(crate) fn parse<'a>(
+    path: &Path,
+    bytes: &'a [u8],
+    expected: Option<&BTreeMap<String, Vec<usize>>>,
+) -> Result<Parsed<'a>> {
     let bad = |e: safetensors::SafeTensorError| CheckpointError::NotSafetensors {
         path: path.to_owned(),
         msg: e.to_string(),

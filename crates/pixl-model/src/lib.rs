@@ -6,7 +6,8 @@
 //! and 2D RoPE), [`dpt`] (DPT head), [`modulation`] (gain/bias output, Eq. 4). [`model`]
 //! assembles them; [`fullres`] runs it at a working resolution and applies its gain and bias to
 //! a photo of any size; [`config`] holds the presets; [`checkpoint`] builds, saves and loads weights
-//! (safetensors, PyTorch-style names, config in the metadata — see the crate README).
+//! (safetensors, PyTorch-style names, config in the metadata — see the crate README); [`parts`]
+//! splits a weights file into parts of bounded size (optionally as f16/bf16) and joins them back.
 pub mod checkpoint;
 pub mod config;
 pub mod convnext;
@@ -16,6 +17,7 @@ pub mod fusion;
 mod layers;
 pub mod model;
 pub mod modulation;
+pub mod parts;
 pub mod trunk;
 pub mod vit;
 

@@ -21,3 +21,4 @@ pub mod scene;
 pub mod studio;
 pub mod synth;
 pub mod train;
+pub mod weights;
