@@ -286,3 +286,150 @@ fn int8_is_labelled_and_scores_as_f32() {
     let refused = run(&["--int8"], "none");
     assert!(!refused.status.success());
 }
+
+/// Fresh `tiny` weights of seed `seed` at `path` (`pixl model init`).
+fn init_weights(path: &Path, seed: u32) {
+    let o = pixl()
+        .args(["model", "init", "--config", "tiny", "--seed", &seed.to_string(), "-o"])
+        .arg(path)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "model init: {}", String::from_utf8_lossy(&o.stderr));
+}
+
+/// Two `--weights` are two rows labelled by file stem, in the order given, and `--sheet` writes
+/// the contact sheet: `--sheet-pairs` rows of 8 panels of 32×32 (source, three C_T maps, the two
+/// networks, the identity, target), the source and target columns holding the data set's
+/// images exactly; `--json` and results.json name it and its columns.
+#[test]
+fn two_weights_are_rows_by_stem_and_the_sheet_shows_the_first_pairs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    make_dataset(&root);
+    let (wa, wb) = (
+        tmp.path().join("run-a.safetensors"),
+        tmp.path().join("run-b.safetensors"),
+    );
+    init_weights(&wa, 0);
+    init_weights(&wb, 1);
+    let out = tmp.path().join("out");
+    let sheet = out.join("sheet.png");
+    let o = pixl()
+        .args([
+            "eval",
+            "--json",
+            "--split",
+            "all",
+            "--baselines",
+            "identity",
+            "--runs",
+            "0",
+        ])
+        .arg("--dataset")
+        .arg(format!("folder:{}", root.display()))
+        .arg("--weights")
+        .arg(&wa)
+        .arg("--weights")
+        .arg(&wb)
+        .arg("--sheet")
+        .arg(&sheet)
+        .args(["--sheet-pairs", "2", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "stderr: {}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let results: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    let columns = [
+        "source",
+        "C_T albedo",
+        "C_T shading",
+        "C_T residual",
+        "Ours (run-a)",
+        "Ours (run-b)",
+        "Identity (source)",
+        "target",
+    ];
+    for v in [&summary, &results] {
+        let labels: Vec<&str> = v["methods"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|m| m["method"].as_str().unwrap())
+            .collect();
+        assert_eq!(labels, ["Ours (run-a)", "Ours (run-b)", "Identity (source)"]);
+        assert_eq!(v["sheet"], sheet.display().to_string());
+        assert_eq!(v["sheet_columns"], serde_json::json!(columns));
+    }
+    assert_eq!(results["sheet_pairs"], 2);
+    let md = std::fs::read_to_string(out.join("results.md")).unwrap();
+    assert!(md.contains(&columns.join(" | ")), "{md}");
+    let rows = csv_rows(&out.join("per_pair.csv"));
+    assert_eq!(rows.iter().filter(|r| r[3] == "Ours (run-b)").count(), 6);
+
+    let img = pixl_core::io::read_image(&sheet).unwrap();
+    assert_eq!((img.width, img.height, img.channels), (8 * SIDE, 2 * SIDE, 3));
+    // The default pairs start with scene0: light0 → light1, then light1 → light2.
+    for (row, (src, tgt)) in [("light0", "light1"), ("light1", "light2")].iter().enumerate() {
+        let src = pixl_core::io::read_image(&root.join(format!("scene0/{src}.png"))).unwrap();
+        let tgt = pixl_core::io::read_image(&root.join(format!("scene0/{tgt}.png"))).unwrap();
+        for y in 0..SIDE {
+            for x in 0..SIDE {
+                for c in 0..3 {
+                    let at = |col: usize| img.get(col * SIDE + x, row * SIDE + y, c);
+                    assert_eq!(at(0), src.get(x, y, c), "row {row} source ({x},{y},{c})");
+                    assert_eq!(at(7), tgt.get(x, y, c), "row {row} target ({x},{y},{c})");
+                    // Fresh weights return the source, scale-corrected like the identity.
+                    assert_eq!(at(4), at(6), "row {row} ({x},{y},{c})");
+                }
+            }
+        }
+    }
+}
+
+/// Two weights files of one stem would share a label: refused before any work, naming both;
+/// a sheet that is not a PNG is refused too.
+#[test]
+fn weights_of_one_stem_and_a_non_png_sheet_are_refused() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    make_dataset(&root);
+    let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
+    std::fs::create_dir_all(&a).unwrap();
+    std::fs::create_dir_all(&b).unwrap();
+    init_weights(&a.join("model.safetensors"), 0);
+    std::fs::copy(a.join("model.safetensors"), b.join("model.safetensors")).unwrap();
+    let run = |extra: &[&std::ffi::OsStr]| {
+        pixl()
+            .args(["eval", "-q", "--split", "all", "--baselines", "identity", "--runs", "0"])
+            .arg("--dataset")
+            .arg(format!("folder:{}", root.display()))
+            .arg("--out")
+            .arg(tmp.path().join("out"))
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let (wa, wb) = (a.join("model.safetensors"), b.join("model.safetensors"));
+    let o = run(&[
+        "--weights".as_ref(),
+        wa.as_os_str(),
+        "--weights".as_ref(),
+        wb.as_os_str(),
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("same file stem \"model\"")
+            && err.contains(&*wa.to_string_lossy())
+            && err.contains(&*wb.to_string_lossy()),
+        "{err}"
+    );
+    assert!(!tmp.path().join("out").exists());
+    let sheet = tmp.path().join("sheet.jpg");
+    let o = run(&["--sheet".as_ref(), sheet.as_os_str()]);
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains(".png"));
+    assert!(!tmp.path().join("out").exists() && !sheet.exists());
+}

@@ -169,6 +169,36 @@ impl Image {
         }
         Ok(out)
     }
+
+    /// Vertical concatenation of images of equal channel count, top to bottom. Images narrower
+    /// than the widest are padded on the right with `fill` (every channel).
+    pub fn vstack(images: &[&Image], fill: f32) -> crate::Result<Image> {
+        let Some(first) = images.first() else {
+            return Err(crate::CoreError::Invalid("vstack of no images".into()));
+        };
+        let ch = first.channels;
+        if images.iter().any(|i| i.channels != ch) {
+            return Err(crate::CoreError::Invalid("vstack: images differ in channels".into()));
+        }
+        let w = images.iter().map(|i| i.width).max().unwrap_or(0);
+        let h: usize = images.iter().map(|i| i.height).sum();
+        let mut out = Image {
+            width: w,
+            height: h,
+            channels: ch,
+            data: vec![fill; w * h * ch],
+        };
+        let mut y0 = 0;
+        for img in images {
+            let row = img.width * ch;
+            for y in 0..img.height {
+                let dst = (y0 + y) * w * ch;
+                out.data[dst..dst + row].copy_from_slice(&img.data[y * row..(y + 1) * row]);
+            }
+            y0 += img.height;
+        }
+        Ok(out)
+    }
 }
 
 /// sRGB electro-optical transfer (IEC 61966-2-1), encoded → linear.
@@ -308,6 +338,27 @@ mod tests {
         assert!((filmic(0.18) - 0.2669).abs() < 1e-3 && (filmic(1.0) - 0.8038).abs() < 1e-3);
         assert_eq!(filmic(1e9), 1.0);
         assert_eq!(filmic(-1.0), 0.0);
+    }
+
+    /// Rows keep their pixels where they land; a narrower one is padded with `fill`.
+    #[test]
+    fn vstack_pads_narrow_rows() {
+        let a = Image::from_fn(3, 2, 3, |x, y, c| (x + 10 * y + 100 * c) as f32);
+        let b = Image::from_fn(2, 1, 3, |x, _, c| -((x + 1 + 100 * c) as f32));
+        let v = Image::vstack(&[&a, &b], 0.5).unwrap();
+        assert_eq!((v.width, v.height, v.channels), (3, 3, 3));
+        for c in 0..3 {
+            for x in 0..3 {
+                for y in 0..2 {
+                    assert_eq!(v.get(x, y, c), a.get(x, y, c));
+                }
+            }
+            assert_eq!(v.get(0, 2, c), b.get(0, 0, c));
+            assert_eq!(v.get(1, 2, c), b.get(1, 0, c));
+            assert_eq!(v.get(2, 2, c), 0.5);
+        }
+        assert!(Image::vstack(&[], 0.0).is_err());
+        assert!(Image::vstack(&[&a, &Image::new(3, 1, 1)], 0.0).is_err());
     }
 
     #[test]

@@ -12,6 +12,7 @@
 //!   repeating with the network's patch period.
 //! - [`run`]: pair lists and [`run_eval`].
 //! - [`report`]: `results.md` / `results.json` / `per_pair.csv`.
+//! - [`sheet`]: the contact sheet of the first pairs ([`contact_sheet`]).
 pub mod baselines;
 pub mod error;
 pub mod grid;
@@ -20,6 +21,7 @@ pub mod metrics;
 pub mod report;
 pub mod response;
 pub mod run;
+pub mod sheet;
 pub mod timing;
 
 pub use baselines::{compose_baseline, parse_baselines, Compose, Identity, Method, ModelMethod};
@@ -33,4 +35,5 @@ pub use run::{
     default_pairs, read_pairs, run_eval, run_response, EvalOptions, EvalReport, MethodSummary, Pair, PairScore,
     ResponseCase, ResponseSummary,
 };
+pub use sheet::{contact_sheet, sheet_columns, SheetRow};
 pub use timing::{time_runs, Timing, DEFAULT_RUNS, DEFAULT_WARMUPS};

@@ -89,6 +89,15 @@ pub fn markdown(report: &EvalReport) -> String {
             .map(|n| format!("v0.1, {n}"))
             .unwrap_or_else(|| "not computed (no --lpips weights)".into())
     );
+    if !report.sheet_columns.is_empty() {
+        let _ = writeln!(
+            s,
+            "- Contact sheet{}: the first {} pairs, one row each; columns, left to right: {}",
+            report.sheet.as_deref().map(|p| format!(" `{p}`")).unwrap_or_default(),
+            report.sheet_pairs,
+            report.sheet_columns.join(" | ")
+        );
+    }
     let _ = writeln!(
         s,
         "- Time: wall-clock of one forward pass on the first pair (intrinsic estimation excluded), mean of the timed runs after the warm-ups\n"
@@ -231,6 +240,10 @@ mod tests {
             }],
             response: Vec::new(),
             response_renders: None,
+            sheet: None,
+            sheet_pairs: 0,
+            sheet_columns: Vec::new(),
+            sheet_rows: Vec::new(),
         }
     }
 

@@ -12,6 +12,7 @@ use crate::baselines::Method;
 use crate::error::{EvalError, Result};
 use crate::lpips::Lpips;
 use crate::metrics::{psnr, scale_correct, ssim};
+use crate::sheet::{ct_panels, sheet_columns, SheetRow};
 use crate::timing::{Timing, DEFAULT_RUNS, DEFAULT_WARMUPS};
 use pixl_data::{load_image, load_intrinsics, Dataset, ImageEntry};
 use pixl_intrinsics::ct::Ct;
@@ -122,6 +123,9 @@ pub struct EvalOptions {
     pub warmups: usize,
     /// Timing protocol: timed runs (paper: 5); 0 turns timing off.
     pub runs: usize,
+    /// Keep the images of the first `sheet_pairs` pairs for a contact sheet
+    /// ([`EvalReport::sheet_rows`], [`crate::sheet`]); 0 keeps none.
+    pub sheet_pairs: usize,
 }
 
 impl Default for EvalOptions {
@@ -130,6 +134,7 @@ impl Default for EvalOptions {
             scale_correction: true,
             warmups: DEFAULT_WARMUPS,
             runs: DEFAULT_RUNS,
+            sheet_pairs: 0,
         }
     }
 }
@@ -183,6 +188,24 @@ pub struct EvalReport {
     pub response: Vec<ResponseSummary>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub response_renders: Option<String>,
+    /// Where the contact sheet was written (set by the caller that writes it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sheet: Option<String>,
+    /// How many pairs the contact sheet shows (its rows).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub sheet_pairs: usize,
+    /// The contact sheet's columns, left to right ([`crate::sheet::sheet_columns`]); empty when
+    /// no pair was kept.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sheet_columns: Vec<String>,
+    /// The kept images of the first [`EvalOptions::sheet_pairs`] pairs, one row per pair
+    /// ([`crate::sheet::contact_sheet`] makes the picture). Not serialised.
+    #[serde(skip)]
+    pub sheet_rows: Vec<SheetRow>,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// One case of the light-response score ([`crate::response`]): a source relit to two lightings
@@ -314,11 +337,27 @@ pub fn run_eval(
     if methods.is_empty() {
         return Err(EvalError::Empty("no method (give --weights and/or --baselines)".into()));
     }
+    // The summaries and the CSV key rows by method name: two methods of one name would merge.
+    for (k, m) in methods.iter().enumerate() {
+        if methods[..k].iter().any(|o| o.name() == m.name()) {
+            return Err(EvalError::Method {
+                method: m.name().to_string(),
+                reason: "given twice (every method needs its own name)".into(),
+            });
+        }
+    }
     let need_ct = methods.iter().any(|m| m.needs_ct());
+    let mut sheet_rows = Vec::new();
     let mut per_pair = Vec::with_capacity(pairs.len() * methods.len());
     let mut timings: Vec<Option<Timing>> = vec![None; methods.len()];
     for (i, pair) in pairs.iter().enumerate() {
         let data = load_pair(pair, need_ct)?;
+        // The panels of this pair's contact-sheet row, in the order of `sheet_columns`.
+        let mut panels = (i < opts.sheet_pairs).then(|| {
+            let mut v = vec![data.source.clone()];
+            v.extend(data.ct.iter().flat_map(ct_panels));
+            v
+        });
         for (m, method) in methods.iter().enumerate() {
             if i == 0 && opts.runs > 0 {
                 timings[m] = Some(method.time(&data.source, data.ct.as_ref(), opts.warmups, opts.runs)?);
@@ -336,9 +375,9 @@ pub fn run_eval(
                 };
                 Ok((psnr(pred, &data.target)?, ssim(pred, &data.target)?, l))
             };
-            let (p, s, l) = pred
+            let ((p, s, l), pred) = pred
                 .map_err(EvalError::from)
-                .and_then(|pred| score(&pred))
+                .and_then(|pred| Ok((score(&pred)?, pred)))
                 .map_err(|e| EvalError::Pair {
                     scene: pair.scene.clone(),
                     source_name: pair.source_name(),
@@ -353,6 +392,18 @@ pub fn run_eval(
                 psnr: p,
                 ssim: s,
                 lpips: l,
+            });
+            if let Some(v) = panels.as_mut() {
+                v.push(pred);
+            }
+        }
+        if let Some(mut panels) = panels {
+            panels.push(data.target);
+            sheet_rows.push(SheetRow {
+                scene: pair.scene.clone(),
+                source: pair.source_name(),
+                target: pair.target_name(),
+                panels,
             });
         }
         on_pair(i + 1);
@@ -385,5 +436,13 @@ pub fn run_eval(
         per_pair,
         response: Vec::new(),
         response_renders: None,
+        sheet: None,
+        sheet_pairs: sheet_rows.len(),
+        sheet_columns: if sheet_rows.is_empty() {
+            Vec::new()
+        } else {
+            sheet_columns(methods.iter().map(|m| m.name()), need_ct)
+        },
+        sheet_rows,
     })
 }

@@ -1,16 +1,19 @@
 //! `pixl eval`: score a model and baselines on a paired dataset (paper §4.1). A thin layer over
 //! `pixl_eval::run_eval`: it opens the dataset, builds the pair list and the methods, runs, prints
-//! the table and writes `results.md`, `results.json` and `per_pair.csv` into `--out`.
+//! the table and writes `results.md`, `results.json` and `per_pair.csv` into `--out`, and the
+//! contact sheet (`--sheet`) where asked.
 use crate::Ctx;
 use candle_core::DType;
 use pixl_data::Split;
 use pixl_eval::{baselines::Method, EvalOptions, Lpips, ModelMethod};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug)]
 #[command(
     after_help = concat!("Examples:\n  pixl eval --dataset miiw:/data/miiw --weights model.safetensors --lpips alex_lpips.safetensors --out eval-miiw\n  \
-pixl eval --dataset folder:shots --baselines identity,compose --pairs pairs.csv --out eval-shots\n\n",
+pixl eval --dataset folder:shots --baselines identity,compose --pairs pairs.csv --out eval-shots\n  \
+pixl eval --dataset synth:held-out --ct coarse --weights run/final.safetensors --weights assets/demo-weights/pixl-tiny-synth.safetensors \
+--baselines identity,compose-camera --sheet eval-new/sheet.png --out eval-new\n\n",
 crate::dataset_kinds_help!())
 )]
 pub struct Args {
@@ -20,9 +23,11 @@ pub struct Args {
     /// Which scenes: test (default; MIIW: the 30 `everett*` scenes), train or all.
     #[arg(long, default_value = "test")]
     pub split: String,
-    /// PIXLRelight checkpoint (.safetensors) to evaluate as "Ours".
+    /// PIXLRelight checkpoint (.safetensors) to evaluate; repeat it to compare several in one
+    /// run (`--weights A.safetensors --weights B.safetensors`). One file is the row "Ours";
+    /// several are "Ours (<file stem>)" each, so their file stems must differ.
     #[arg(long)]
-    pub weights: Option<PathBuf>,
+    pub weights: Vec<PathBuf>,
     /// Baselines, comma-separated: identity (the source), compose (A⊙S+R of C_T, clipped, sRGB),
     /// compose-reinhard (A⊙S+R shown with Reinhard auto-exposure, as `pixl synth --style boxes`
     /// shows its images), compose-camera (with a camera's tone curve, as the photo style does).
@@ -58,6 +63,18 @@ pub struct Args {
     /// files are replaced atomically).
     #[arg(long, default_value = "eval-out")]
     pub out: PathBuf,
+    /// Write a contact sheet (PNG) of the first --sheet-pairs pairs: one row per pair, columns
+    /// source | C_T albedo | C_T shading | C_T residual | each method's prediction, in table order |
+    /// target. The C_T columns appear only when some method reads C_T, each map clipped to
+    /// [0, 1] and sRGB-encoded; predictions are shown as scored (after the scale correction unless
+    /// --no-scale-correction). No labels are drawn: results.md and results.json (`sheet_columns`)
+    /// list the columns. Rows of other sizes are padded on the right with grey.
+    #[arg(long)]
+    pub sheet: Option<PathBuf>,
+    /// Pairs (rows) of the --sheet contact sheet: the first N of the list.
+    #[arg(long, default_value_t = 4, requires = "sheet",
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..))]
+    pub sheet_pairs: usize,
     /// Print the JSON summary (method rows) on stdout instead of the table.
     #[arg(long)]
     pub json: bool,
@@ -68,7 +85,7 @@ pub struct Args {
     #[arg(long, default_value = "f32")]
     pub dtype: String,
     /// Evaluate the network with 8-bit linear layers (CPU f32 with AVX-512 VNNI), as
-    /// `pixl relight --int8` runs it.
+    /// `pixl relight --int8` runs it; applies to every --weights ("Ours (int8)", "Ours (<stem>, int8)").
     #[arg(long, requires = "weights")]
     pub int8: bool,
     /// Timing protocol: untimed warm-ups.
@@ -91,14 +108,25 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let ctx = &ctx.for_json(args.json);
     let mut inputs: Vec<&std::path::Path> = Vec::new();
     inputs.extend(args.pairs.as_deref());
-    inputs.extend(args.weights.as_deref());
+    inputs.extend(args.weights.iter().map(PathBuf::as_path));
     inputs.extend(args.lpips.as_deref());
-    pixl_core::output::check_output_dir(
-        &args.out,
-        true,
-        &["results.md", "results.json", "per_pair.csv"],
-        &inputs,
-    )?;
+    let labels = weight_labels(&args.weights, args.int8)?;
+    let mut writes = vec!["results.md", "results.json", "per_pair.csv"];
+    if let Some(sheet) = &args.sheet {
+        if pixl_core::io::extension(sheet) != "png" {
+            anyhow::bail!(
+                "--sheet {}: the contact sheet is a PNG; give a file name ending in .png",
+                sheet.display()
+            );
+        }
+        if in_folder(sheet, &args.out) {
+            // Checked with the output folder, which may not exist yet.
+            writes.extend(sheet.file_name().and_then(|n| n.to_str()));
+        } else {
+            pixl_core::output::check_output(sheet, &["png"], &inputs)?;
+        }
+    }
+    pixl_core::output::check_output_dir(&args.out, true, &writes, &inputs)?;
     let split: Split = args.split.parse()?;
     let dataset = pixl_data::open(&args.dataset, split)?;
     let mut pairs = match &args.pairs {
@@ -133,7 +161,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let dtype = parse_dtype(&args.dtype)?;
 
     let mut methods: Vec<Box<dyn Method>> = Vec::new();
-    if let Some(w) = &args.weights {
+    for (w, label) in args.weights.iter().zip(labels) {
         let (_cfg, mut model) = pixl_model::checkpoint::load(w, &device, dtype)?;
         if args.int8 {
             crate::device::check_int8(&device, dtype)?;
@@ -142,7 +170,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             }
         }
         methods.push(Box::new(ModelMethod {
-            label: if args.int8 { "Ours (int8)" } else { "Ours" }.into(),
+            label,
             model,
             device: device.clone(),
         }));
@@ -156,6 +184,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         scale_correction: !args.no_scale_correction,
         warmups: args.warmups,
         runs: args.runs,
+        sheet_pairs: if args.sheet.is_some() { args.sheet_pairs } else { 0 },
     };
 
     let pb = ctx.progress(pairs.len() as u64, "eval");
@@ -196,11 +225,19 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         }
         _ => {}
     }
+    if let Some(sheet) = &args.sheet {
+        let image = pixl_eval::contact_sheet(&report.sheet_rows)?;
+        // The sheet may go into --out, which write_reports would only create next.
+        std::fs::create_dir_all(&args.out)
+            .map_err(|e| anyhow::anyhow!("creating the output folder {}: {e}", args.out.display()))?;
+        pixl_core::io::write_png(sheet, &image, pixl_core::io::PngDepth::Eight)?;
+        report.sheet = Some(sheet.display().to_string());
+    }
     pixl_eval::write_reports(&report, &args.out)?;
 
     if args.json {
         // The summary rows as JSON, with the same "inf" convention as results.json.
-        let summary = serde_json::json!({
+        let mut summary = serde_json::json!({
             "dataset": report.dataset,
             "pairs": report.pairs,
             "scale_correction": report.scale_correction,
@@ -208,6 +245,10 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "methods": report.methods,
             "response": report.response,
         });
+        if let Some(sheet) = &report.sheet {
+            summary["sheet"] = sheet.as_str().into();
+            summary["sheet_columns"] = report.sheet_columns.clone().into();
+        }
         ctx.print_json(&summary)?;
     } else {
         ctx.say(pixl_eval::report::markdown(&report));
@@ -220,8 +261,54 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "wrote {}/results.md, results.json, per_pair.csv",
             args.out.display()
         ));
+        if let Some(sheet) = &report.sheet {
+            ctx.say(format!(
+                "wrote {sheet} ({} pairs; columns: {})",
+                report.sheet_pairs,
+                report.sheet_columns.join(" | ")
+            ));
+        }
     }
     Ok(())
+}
+
+/// The row label of each --weights file: "Ours" for a single one, "Ours (<file stem>)" for
+/// several (", int8" added inside the parentheses with --int8). Two files of one stem would get
+/// one label, so that is an error.
+fn weight_labels(weights: &[PathBuf], int8: bool) -> anyhow::Result<Vec<String>> {
+    if let [_] = weights {
+        return Ok(vec![if int8 { "Ours (int8)" } else { "Ours" }.into()]);
+    }
+    let stem = |w: &PathBuf| {
+        w.file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default()
+    };
+    let mut labels = Vec::with_capacity(weights.len());
+    for (k, w) in weights.iter().enumerate() {
+        let name = stem(w);
+        if let Some(other) = weights[..k].iter().find(|o| stem(o) == name) {
+            anyhow::bail!(
+                "--weights {} and {} have the same file stem {name:?}, which names their rows in the \
+                 tables (\"Ours ({name})\"); copy or link one of them under another name",
+                other.display(),
+                w.display()
+            );
+        }
+        labels.push(if int8 {
+            format!("Ours ({name}, int8)")
+        } else {
+            format!("Ours ({name})")
+        });
+    }
+    Ok(labels)
+}
+
+/// Whether `file` lies directly in the folder `dir` (compared as written, or as files when both
+/// exist).
+fn in_folder(file: &Path, dir: &Path) -> bool {
+    let parent = pixl_core::output::parent_dir(file);
+    parent == dir || pixl_core::output::same_file(&parent, dir)
 }
 
 /// The light-response cases of `pairs` (see `--no-response`), or `None` when a file is missing.
