@@ -65,6 +65,7 @@ while [ $# -gt 0 ]; do
   esac
 done
 [ -n "$INIT" ] && { [ -f "$INIT" ] || { echo "gpu-train.sh: --init $INIT: no such file" >&2; exit 2; }; INIT="$(cd "$(dirname "$INIT")" && pwd)/$(basename "$INIT")"; }
+INIT_GIVEN="$INIT"
 mkdir -p "$OUT/weights"; OUT="$(cd "$OUT" && pwd)"
 WORK="$(mktemp -d)"
 PIDS=()
@@ -246,7 +247,7 @@ cp "$BUNDLED" "$WORK/bundled.safetensors"
 cat "$WORK/eval/results.md"
 
 # ---- summary ----
-python3 - "$WORK" "$OUT" "$DEVICE" "$SEED" "$MINUTES" "$TRAIN_SECS" "$SECONDS" "$AGREE" "$MODEL" "${INIT:-}" "$BATCH" <<'EOF'
+python3 - "$WORK" "$OUT" "$DEVICE" "$SEED" "$MINUTES" "$TRAIN_SECS" "$SECONDS" "$AGREE" "$MODEL" "$INIT_GIVEN" "$BATCH" <<'EOF'
 import glob, json, os, statistics, sys
 work, out, device, seed, minutes, train_secs, wall, agree, model, init, batch = sys.argv[1:]
 load = lambda p, d=None: json.load(open(p)) if os.path.exists(p) else d
