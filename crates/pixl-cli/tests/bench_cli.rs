@@ -3,26 +3,8 @@
 //! from f32 by a small but non-zero amount, a tolerance below that error fails the command, and a
 //! training step reports a finite loss that matches an L1 loss of the freshly initialised network
 //! (which returns its source) computed here.
-use serde_json::Value;
-use std::process::{Command, Output};
-
-fn pixl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pixl"))
-        .args(args)
-        .arg("--quiet")
-        .output()
-        .expect("run pixl")
-}
-
-fn json(o: &Output) -> Value {
-    serde_json::from_slice(&o.stdout).unwrap_or_else(|e| {
-        panic!(
-            "not JSON ({e}): {}\nstderr: {}",
-            String::from_utf8_lossy(&o.stdout),
-            String::from_utf8_lossy(&o.stderr)
-        )
-    })
-}
+mod common;
+use common::pixl_q;
 
 const PARITY: [&str; 9] = [
     "bench", "parity", "--device", "cpu", "--config", "tiny", "--size", "48x32", "--json",
@@ -30,9 +12,7 @@ const PARITY: [&str; 9] = [
 
 #[test]
 fn parity_on_the_cpu_is_exact_and_bf16_is_near() {
-    let o = pixl(&PARITY);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let v = json(&o);
+    let v = pixl_q(&PARITY).ok().json();
     assert_eq!(v["failed"], 0);
     let rows = v["rows"].as_array().unwrap();
     assert_eq!(
@@ -57,29 +37,31 @@ fn parity_on_the_cpu_is_exact_and_bf16_is_near() {
 fn parity_fails_over_its_tolerance() {
     let mut args = PARITY.to_vec();
     args.extend(["--tol-bf16-vs-f32", "1e-9"]);
-    let o = pixl(&args);
-    assert!(!o.status.success(), "a 1e-9 tolerance on bf16 must fail");
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(stderr.contains("1 of 3 parity checks over tolerance"), "{stderr}");
-    let v = json(&o);
+    let o = pixl_q(&args);
+    assert!(!o.success(), "a 1e-9 tolerance on bf16 must fail");
+    assert!(o.stderr.contains("1 of 3 parity checks over tolerance"), "{}", o.stderr);
+    let v = o.json();
     assert_eq!(v["failed"], 1);
     assert_eq!(v["rows"][2]["pass"], false);
 }
 
 #[test]
 fn parity_names_a_wrong_fixtures_folder() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let mut args = PARITY[..8].to_vec();
-    args.extend(["--fixtures", dir.path().to_str().unwrap()]);
-    let o = pixl(&args);
-    assert!(!o.status.success());
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(stderr.contains("is not the repository's fixtures folder"), "{stderr}");
+    args.extend(["--fixtures", common::s(dir.path())]);
+    let o = pixl_q(&args);
+    assert!(!o.success());
+    assert!(
+        o.stderr.contains("is not the repository's fixtures folder"),
+        "{}",
+        o.stderr
+    );
 }
 
 #[test]
 fn train_step_reports_the_l1_loss_of_a_fresh_network() {
-    let o = pixl(&[
+    let v = pixl_q(&[
         "bench",
         "train-step",
         "--config",
@@ -93,9 +75,9 @@ fn train_step_reports_the_l1_loss_of_a_fresh_network() {
         "--runs",
         "1",
         "--json",
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let v = json(&o);
+    ])
+    .ok()
+    .json();
     assert_eq!(v["batch"], 2);
     assert_eq!(v["timing"]["runs_ms"].as_array().unwrap().len(), 1);
     // The first step's loss is that of the initial network, which returns its source: the mean

@@ -1,17 +1,11 @@
-//! `pixl demo` end to end (issue 7): the report exists and holds every panel for every preset.
-use std::process::Command;
+//! `pixl demo` end to end: the report exists and holds every panel for every preset.
+mod common;
 
 #[test]
 fn demo_writes_a_complete_report() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let out = dir.path().join("demo");
-    let o = Command::new(env!("CARGO_BIN_EXE_pixl"))
-        .args(["demo", "--quiet", "--spp", "2", "--json", "--out"])
-        .arg(&out)
-        .output()
-        .unwrap();
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "demo failed: {stderr}");
+    let o = common::pixl(&["demo", "--quiet", "--spp", "2", "--json", "--out", common::s(&out)]).ok();
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
     let presets = [
         "cool-side-flash",
@@ -74,7 +68,7 @@ fn demo_writes_a_complete_report() {
         }
     }
     // The JSON summary carries finite metrics (or "inf" for an exact match), one entry per preset.
-    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let v = o.json();
     // Light response: the unchanged source responds to nothing; the relit images' score is the
     // one of the written PNGs (8-bit quantisation moves it a little).
     let lr = &v["light_response"];

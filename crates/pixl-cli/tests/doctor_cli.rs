@@ -1,46 +1,38 @@
 //! `pixl doctor`: its JSON form against what the test finds out on its own (the machine's core
 //! count and SIMD extensions, the thread variable it sets, a models folder it fills), and its
 //! text form's sections.
+mod common;
+use common::{run, Run};
 use serde_json::Value;
 use std::path::Path;
-use std::process::{Command, Output};
 
-fn pixl(args: &[&str], env: &[(&str, &str)], home: &Path) -> Output {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_pixl"));
-    c.args(args)
-        .env_remove("PIXL_MODELS_DIR")
-        .env_remove("HF_HUB_CACHE")
-        .env_remove("HUGGINGFACE_HUB_CACHE")
-        .env_remove("HF_HOME")
-        .env_remove("XDG_CACHE_HOME")
-        .env_remove("PIXL_OFFLINE")
-        .env_remove("HF_HUB_OFFLINE")
-        .env_remove("RAYON_NUM_THREADS")
-        .env("HOME", home);
+/// `pixl args` with HOME at `home`, online (doctor reports the offline switch) and without
+/// `RAYON_NUM_THREADS` unless `env` sets it.
+fn pixl(args: &[&str], env: &[(&str, &str)], home: &Path) -> Run {
+    let mut c = common::cmd_in(home);
+    c.args(args).env_remove("PIXL_OFFLINE").env_remove("RAYON_NUM_THREADS");
     for (k, v) in env {
         c.env(k, v);
     }
-    c.output().expect("run pixl")
+    run(&mut c)
 }
 
 fn doctor_json(env: &[(&str, &str)], home: &Path) -> Value {
-    let o = pixl(&["doctor", "--json"], env, home);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    serde_json::from_slice(&o.stdout).expect("doctor --json prints one JSON document")
+    pixl(&["doctor", "--json"], env, home).ok().json()
+}
+
+/// The strings of a JSON array.
+fn strings(v: &Value) -> Vec<&str> {
+    v.as_array().unwrap().iter().map(|v| v.as_str().unwrap()).collect()
 }
 
 #[test]
 fn json_matches_the_machine_and_the_environment() {
-    let home = tempfile::tempdir().unwrap();
+    let home = common::tempdir();
     let r = doctor_json(&[], home.path());
 
     assert_eq!(r["version"], env!("CARGO_PKG_VERSION"));
-    let features: Vec<&str> = r["build"]["features"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|v| v.as_str().unwrap())
-        .collect();
+    let features = strings(&r["build"]["features"]);
     assert_eq!(features.contains(&"cuda"), cfg!(feature = "cuda"));
     assert_eq!(
         r["build"]["target"],
@@ -57,12 +49,7 @@ fn json_matches_the_machine_and_the_environment() {
     );
     #[cfg(target_arch = "x86_64")]
     {
-        let listed: Vec<&str> = r["cpu"]["simd_features"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|v| v.as_str().unwrap())
-            .collect();
+        let listed = strings(&r["cpu"]["simd_features"]);
         assert_eq!(listed.contains(&"avx2"), std::arch::is_x86_feature_detected!("avx2"));
         assert_eq!(listed.contains(&"fma"), std::arch::is_x86_feature_detected!("fma"));
         assert_eq!(
@@ -112,12 +99,10 @@ fn json_matches_the_machine_and_the_environment() {
 
 #[test]
 fn json_follows_threads_models_folder_and_offline() {
-    let home = tempfile::tempdir().unwrap();
+    let home = common::tempdir();
     let models = home.path().join("weights");
     // Fill DIR/da3-metric/ with the files `pixl models list` says the model has.
-    let list = pixl(&["models", "list", "--json"], &[], home.path());
-    assert!(list.status.success());
-    let list: Value = serde_json::from_slice(&list.stdout).unwrap();
+    let list = pixl(&["models", "list", "--json"], &[], home.path()).ok().json();
     let spec = list
         .as_array()
         .unwrap()
@@ -125,9 +110,7 @@ fn json_follows_threads_models_folder_and_offline() {
         .find(|m| m["name"] == "da3-metric")
         .unwrap();
     for f in spec["files"].as_array().unwrap() {
-        let p = models.join("da3-metric").join(f.as_str().unwrap());
-        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
-        std::fs::write(&p, b"{}").unwrap();
+        common::write_file(&models.join("da3-metric").join(f.as_str().unwrap()), b"{}");
     }
     let models_text = models.display().to_string();
     let r = doctor_json(
@@ -154,10 +137,9 @@ fn json_follows_threads_models_folder_and_offline() {
 
 #[test]
 fn text_names_every_section() {
-    let home = tempfile::tempdir().unwrap();
-    let o = pixl(&["doctor"], &[], home.path());
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let text = String::from_utf8(o.stdout).unwrap();
+    let home = common::tempdir();
+    let o = pixl(&["doctor"], &[], home.path()).ok();
+    let text = String::from_utf8(o.stdout_bytes).unwrap();
     for section in ["pixl ", "CPU ", "SIMD ", "CUDA ", "weights ", "da3-metric"] {
         assert!(text.contains(section), "no {section:?} in:\n{text}");
     }

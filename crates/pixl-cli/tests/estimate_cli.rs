@@ -3,7 +3,7 @@
 //! their bad inputs at the binary level: each a clear error, exit 1, nothing written. No test
 //! touches the network (`--offline`, a private HOME, a closed endpoint).
 mod common;
-use common::{pixl, run};
+use common::{assert_only, cmd_in, png_header_only, run, write_file, write_image};
 use pixl_core::Image;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -12,7 +12,7 @@ use std::process::Command;
 fn tiny() -> PathBuf {
     let p = std::env::var_os("PIXL_DA3_TINY")
         .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/da3/tiny"));
+        .unwrap_or_else(|| common::repo_path("fixtures/da3/tiny"));
     assert!(
         p.join("config.json").is_file() && p.join("model.safetensors").is_file(),
         "the tiny DA3 checkpoint is missing at {} (set PIXL_DA3_TINY)",
@@ -39,25 +39,37 @@ fn as_metric(cfg: &str) -> String {
 
 fn photo(path: &Path, w: usize, h: usize) {
     let img = Image::from_fn(w, h, 3, |x, y, c| ((x * 7 + y * 13 + c * 29) % 64) as f32 / 63.0);
-    pixl_core::io::write_image(path, &img).unwrap();
+    write_image(path, &img);
 }
 
-/// Runs and expects exit 1 with every needle in stderr, no panic, and nothing in `dir` but
-/// `keep` (no output, no temporary file).
+/// `pixl estimate depth PHOTO -o OUT` with HOME at `home`.
+fn depth_cmd(home: &Path, photo: &Path, out: &Path) -> Command {
+    let mut c = cmd_in(home);
+    c.args(["estimate", "depth"]).arg(photo).arg("-o").arg(out);
+    c
+}
+
+/// `pixl reconstruct --image PHOTO -o OUT` with HOME at `home`.
+fn reconstruct_cmd(home: &Path, photo: &Path, out: &Path) -> Command {
+    let mut c = cmd_in(home);
+    c.args(["reconstruct", "--image"]).arg(photo).arg("-o").arg(out);
+    c
+}
+
+/// A fresh HOME with an empty `work` folder in it.
+fn home_and_work() -> (tempfile::TempDir, PathBuf) {
+    let t = common::tempdir();
+    let work = t.path().join("work");
+    std::fs::create_dir(&work).unwrap();
+    (t, work)
+}
+
+/// Runs and expects exit 1 with every needle in stderr (whatever the case), no panic, and
+/// nothing in `dir` but `keep` (no output, no temporary file).
 fn expect_failure(c: &mut Command, needles: &[&str], dir: &Path, keep: &[&str]) {
-    let (o, _, err) = run(c);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(!err.contains("panicked"), "{err}");
-    for n in needles {
-        assert!(
-            err.to_lowercase().contains(&n.to_lowercase()),
-            "stderr lacks {n:?}: {err}"
-        );
-    }
-    for e in std::fs::read_dir(dir).unwrap().flatten() {
-        let n = e.file_name().to_string_lossy().into_owned();
-        assert!(keep.contains(&n.as_str()), "left behind: {n} ({err})");
-    }
+    let r = run(c);
+    r.fails_ignoring_case(needles);
+    assert_only(dir, keep, &r.stderr);
 }
 
 /// The library's estimate of the tiny checkpoint, sky as 0: what the CLI must write.
@@ -98,24 +110,20 @@ fn close(a: &[f32], b: &[f32]) -> bool {
 
 #[test]
 fn depth_of_the_fixture_photo_with_preview_sky_and_json() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let models = models_dir(t.path(), "da3-mono", str::to_string);
     let input = tiny().join("input_a.png");
     let (out, prev, sky) = (t.path().join("d.exr"), t.path().join("p.png"), t.path().join("s.png"));
-    let (o, stdout, err) = run(pixl(t.path())
-        .args(["estimate", "depth"])
-        .arg(&input)
-        .arg("-o")
-        .arg(&out)
+    let v = run(depth_cmd(t.path(), &input, &out)
         .args(["--model", "da3-mono", "--process-res", "112", "--fov", "60", "--json"])
         .arg("--preview")
         .arg(&prev)
         .arg("--sky")
         .arg(&sky)
         .arg("--models")
-        .arg(&models));
-    assert!(o.status.success(), "{err}");
-    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap_or_else(|e| panic!("{e}: {stdout}"));
+        .arg(&models))
+    .ok()
+    .json();
     let (w, h) = (130usize, 90usize);
     assert_eq!(
         (v["width"].as_u64(), v["height"].as_u64()),
@@ -156,27 +164,24 @@ fn depth_of_the_fixture_photo_with_preview_sky_and_json() {
 /// 35 mm-equivalent focal length is the one used when no flag is given.
 #[test]
 fn metric_depth_follows_the_focal_length_from_flags_or_exif() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let models = models_dir(t.path(), "da3-metric", as_metric);
     // A 3:2 JPEG whose EXIF says 36 mm equivalent: f = W (diagonal rule = long-side rule).
     let (w, h) = (60usize, 40usize);
     let plain = t.path().join("plain.jpg");
     photo(&plain, w, h);
-    let bytes = std::fs::read(&plain).unwrap();
-    let jpg = t.path().join("exif.jpg");
-    std::fs::write(&jpg, with_exif(&bytes, 36)).unwrap();
+    let jpg = write_file(
+        &t.path().join("exif.jpg"),
+        with_exif(&std::fs::read(&plain).unwrap(), 36),
+    );
     let depth = |src: &Path, name: &str, extra: &[&str]| -> (Vec<f32>, serde_json::Value) {
         let out = t.path().join(name);
-        let (o, stdout, err) = run(pixl(t.path())
-            .args(["estimate", "depth"])
-            .arg(src)
-            .arg("-o")
-            .arg(&out)
+        let r = run(depth_cmd(t.path(), src, &out)
             .args(["--process-res", "56", "--json", "--models"])
             .arg(&models)
-            .args(extra));
-        assert!(o.status.success(), "{err}");
-        (read_z(&out).2, serde_json::from_str(&stdout).unwrap())
+            .args(extra))
+        .ok();
+        (read_z(&out).2, r.json())
     };
     let (a, va) = depth(&jpg, "a.exr", &[]);
     assert!(va["focal_source"].as_str().unwrap().contains("EXIF"), "{va}");
@@ -228,15 +233,13 @@ fn with_exif(jpeg: &[u8], f35: u16) -> Vec<u8> {
 /// vertex depths are the estimated depths, sky has no mesh, and the camera has the focal length.
 #[test]
 fn reconstruct_from_a_photo_alone() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let models = models_dir(t.path(), "da3-metric", as_metric);
     let (w, h) = (42usize, 28usize);
     let p = t.path().join("photo.png");
     photo(&p, w, h);
     let scene = t.path().join("scene");
-    let (o, stdout, err) = run(pixl(t.path())
-        .args(["reconstruct", "--image"])
-        .arg(&p)
+    let stdout = run(reconstruct_cmd(t.path(), &p, &scene)
         .args([
             "--fov",
             "55",
@@ -246,12 +249,11 @@ fn reconstruct_from_a_photo_alone() {
             "1000",
             "--format",
             "ply",
-            "-o",
         ])
-        .arg(&scene)
         .arg("--models")
-        .arg(&models));
-    assert!(o.status.success(), "{err}");
+        .arg(&models))
+    .ok()
+    .stdout;
     assert!(
         stdout.contains("da3-metric") && stdout.contains(&models.join("da3-metric").display().to_string()),
         "{stdout}"
@@ -280,189 +282,106 @@ fn reconstruct_from_a_photo_alone() {
 
 #[test]
 fn a_non_image_photo_is_refused() {
-    let t = tempfile::tempdir().unwrap();
+    let (t, work) = home_and_work();
     let models = models_dir(t.path(), "da3-mono", str::to_string);
-    let work = t.path().join("work");
-    std::fs::create_dir(&work).unwrap();
-    let bad = work.join("notes.png");
-    std::fs::write(&bad, b"these are notes, not a picture").unwrap();
-    expect_failure(
-        pixl(t.path())
-            .args(["estimate", "depth"])
-            .arg(&bad)
-            .arg("-o")
-            .arg(work.join("d.exr"))
-            .args(["--model", "da3-mono", "--models"])
-            .arg(&models),
-        &["notes.png"],
-        &work,
-        &["notes.png"],
-    );
-    let txt = work.join("notes.txt");
-    std::fs::write(&txt, b"text").unwrap();
-    expect_failure(
-        pixl(t.path())
-            .args(["estimate", "depth"])
-            .arg(&txt)
-            .arg("-o")
-            .arg(work.join("d.exr"))
-            .args(["--model", "da3-mono", "--models"])
-            .arg(&models),
-        &["notes.txt"],
-        &work,
-        &["notes.png", "notes.txt"],
-    );
+    let refused = |photo: &Path, keep: &[&str]| {
+        expect_failure(
+            depth_cmd(t.path(), photo, &work.join("d.exr"))
+                .args(["--model", "da3-mono", "--models"])
+                .arg(&models),
+            &[photo.file_name().unwrap().to_str().unwrap()],
+            &work,
+            keep,
+        );
+    };
+    let bad = write_file(&work.join("notes.png"), b"these are notes, not a picture");
+    refused(&bad, &["notes.png"]);
+    let txt = write_file(&work.join("notes.txt"), b"text");
+    refused(&txt, &["notes.png", "notes.txt"]);
 }
 
 #[test]
 fn a_one_pixel_photo_is_refused() {
-    let t = tempfile::tempdir().unwrap();
+    let (t, work) = home_and_work();
     let models = models_dir(t.path(), "da3-metric", as_metric);
-    let work = t.path().join("work");
-    std::fs::create_dir(&work).unwrap();
     let p = work.join("dot.png");
     photo(&p, 1, 1);
-    expect_failure(
-        pixl(t.path())
-            .args(["estimate", "depth"])
-            .arg(&p)
-            .arg("-o")
-            .arg(work.join("d.exr"))
-            .arg("--models")
-            .arg(&models),
-        &["dot.png", "1x1"],
-        &work,
-        &["dot.png"],
-    );
-    expect_failure(
-        pixl(t.path())
-            .args(["reconstruct", "--image"])
-            .arg(&p)
-            .arg("-o")
-            .arg(work.join("scene"))
-            .arg("--models")
-            .arg(&models),
-        &["dot.png", "1x1"],
-        &work,
-        &["dot.png"],
-    );
+    for mut c in [
+        depth_cmd(t.path(), &p, &work.join("d.exr")),
+        reconstruct_cmd(t.path(), &p, &work.join("scene")),
+    ] {
+        expect_failure(c.arg("--models").arg(&models), &["dot.png", "1x1"], &work, &["dot.png"]);
+    }
 }
 
 /// A PNG whose header claims 100000 × 100000 pixels is refused before anything is allocated.
 #[test]
 fn a_huge_photo_header_is_refused() {
-    let t = tempfile::tempdir().unwrap();
-    let work = t.path().join("work");
-    std::fs::create_dir(&work).unwrap();
-    let p = work.join("huge.png");
-    let mut v = b"\x89PNG\r\n\x1a\n".to_vec();
-    let mut chunk = b"IHDR".to_vec();
-    chunk.extend_from_slice(&100_000u32.to_be_bytes());
-    chunk.extend_from_slice(&100_000u32.to_be_bytes());
-    chunk.extend_from_slice(&[8, 2, 0, 0, 0]);
-    v.extend_from_slice(&13u32.to_be_bytes());
-    v.extend_from_slice(&chunk);
-    v.extend_from_slice(&[0, 0, 0, 0]);
-    std::fs::write(&p, v).unwrap();
-    for args in [
-        vec![
-            "estimate",
-            "depth",
-            p.to_str().unwrap(),
-            "-o",
-            work.join("d.exr").to_str().unwrap(),
-        ],
-        vec![
-            "reconstruct",
-            "--image",
-            p.to_str().unwrap(),
-            "-o",
-            work.join("scene").to_str().unwrap(),
-        ],
+    let (t, work) = home_and_work();
+    let p = write_file(&work.join("huge.png"), png_header_only(100_000, 100_000));
+    for mut c in [
+        depth_cmd(t.path(), &p, &work.join("d.exr")),
+        reconstruct_cmd(t.path(), &p, &work.join("scene")),
     ] {
-        expect_failure(
-            pixl(t.path()).args(&args),
-            &["huge.png", "100000x100000"],
-            &work,
-            &["huge.png"],
-        );
+        expect_failure(&mut c, &["huge.png", "100000x100000"], &work, &["huge.png"]);
     }
 }
 
 /// A truncated weight file and a config.json of another model fail cleanly, naming the file.
 #[test]
 fn a_corrupt_checkpoint_is_refused() {
-    let t = tempfile::tempdir().unwrap();
+    let (t, work) = home_and_work();
     let models = models_dir(t.path(), "da3-mono", str::to_string);
-    let work = t.path().join("work");
-    std::fs::create_dir(&work).unwrap();
     let p = work.join("photo.png");
     photo(&p, 30, 20);
     let weights = models.join("da3-mono/model.safetensors");
     let bytes = std::fs::read(&weights).unwrap();
-    std::fs::write(&weights, &bytes[..bytes.len() / 2]).unwrap();
-    let cmd = |c: &mut Command| {
-        c.args(["estimate", "depth"])
-            .arg(&p)
-            .arg("-o")
-            .arg(work.join("d.exr"))
-            .args(["--model", "da3-mono", "--models"])
-            .arg(&models);
+    let refused = |needle: &str| {
+        expect_failure(
+            depth_cmd(t.path(), &p, &work.join("d.exr"))
+                .args(["--model", "da3-mono", "--models"])
+                .arg(&models),
+            &[needle],
+            &work,
+            &["photo.png"],
+        );
     };
-    let mut c = pixl(t.path());
-    cmd(&mut c);
-    expect_failure(&mut c, &["model.safetensors"], &work, &["photo.png"]);
+    write_file(&weights, &bytes[..bytes.len() / 2]);
+    refused("model.safetensors");
 
     // A config of another model (a BERT text encoder) beside intact weights.
-    std::fs::write(&weights, &bytes).unwrap();
-    std::fs::write(
-        models.join("da3-mono/config.json"),
+    write_file(&weights, &bytes);
+    write_file(
+        &models.join("da3-mono/config.json"),
         br#"{"architectures": ["BertModel"], "model_type": "bert", "hidden_size": 768, "num_hidden_layers": 12}"#,
-    )
-    .unwrap();
-    let mut c = pixl(t.path());
-    cmd(&mut c);
-    expect_failure(&mut c, &["config.json"], &work, &["photo.png"]);
+    );
+    refused("config.json");
 }
 
 /// Offline with no weights anywhere: at once, naming `pixl models fetch`, for both commands.
 #[test]
 fn offline_without_weights_names_the_fetch_command() {
-    let t = tempfile::tempdir().unwrap();
-    let work = t.path().join("work");
-    std::fs::create_dir(&work).unwrap();
+    let (t, work) = home_and_work();
     let p = work.join("photo.png");
     photo(&p, 30, 20);
-    expect_failure(
-        pixl(t.path())
-            .args(["estimate", "depth"])
-            .arg(&p)
-            .arg("-o")
-            .arg(work.join("d.exr"))
-            .arg("--offline"),
-        &["pixl models fetch da3-metric", "--models DIR"],
-        &work,
-        &["photo.png"],
-    );
-    expect_failure(
-        pixl(t.path())
-            .args(["reconstruct", "--image"])
-            .arg(&p)
-            .arg("-o")
-            .arg(work.join("scene"))
-            .arg("--offline"),
-        &["pixl models fetch da3-metric"],
-        &work,
-        &["photo.png"],
-    );
+    for (mut c, needles) in [
+        (
+            depth_cmd(t.path(), &p, &work.join("d.exr")),
+            &["pixl models fetch da3-metric", "--models DIR"][..],
+        ),
+        (
+            reconstruct_cmd(t.path(), &p, &work.join("scene")),
+            &["pixl models fetch da3-metric"][..],
+        ),
+    ] {
+        expect_failure(c.arg("--offline"), needles, &work, &["photo.png"]);
+    }
 }
 
 /// Outputs are checked before any work: a wrong extension, a missing folder, the photo itself.
 #[test]
 fn bad_outputs_are_refused_before_any_work() {
-    let t = tempfile::tempdir().unwrap();
-    let work = t.path().join("work");
-    std::fs::create_dir(&work).unwrap();
+    let (t, work) = home_and_work();
     let p = work.join("photo.exr");
     photo(&p, 30, 20);
     let before = std::fs::read(&p).unwrap();
@@ -472,12 +391,7 @@ fn bad_outputs_are_refused_before_any_work() {
         (work.join("nowhere/d.exr"), "does not exist"),
         (p.clone(), "photo.exr"),
     ] {
-        expect_failure(
-            pixl(t.path()).args(["estimate", "depth"]).arg(&p).arg("-o").arg(&out),
-            &[needle],
-            &work,
-            &["photo.exr"],
-        );
+        expect_failure(&mut depth_cmd(t.path(), &p, &out), &[needle], &work, &["photo.exr"]);
     }
     assert_eq!(std::fs::read(&p).unwrap(), before, "the photo was touched");
 }

@@ -1,17 +1,14 @@
 //! `pixl eval` end to end on a tiny fake `folder:` dataset built here: two scenes of three 32×32
 //! PNGs, each with its exact `<stem>.intrinsics.exr` beside it (the training loader's rule).
+mod common;
+use common::{run, tiny_weights, write_png8, Run};
 use pixl_core::image::linear_to_srgb;
-use pixl_core::io::{write_png, PngDepth};
 use pixl_core::Image;
 use pixl_intrinsics::ct::{write_ct, Ct};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 
 const SIDE: usize = 32;
-
-fn pixl() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_pixl"))
-}
 
 /// Scene `s`, light `l`: the PNG is exactly sRGB(A ⊙ S_l), 8-bit, with a C_T of R = 0, so the
 /// compose baseline reproduces it up to 8-bit quantisation.
@@ -31,10 +28,28 @@ fn make_dataset(root: &Path) {
             let residual = Image::new(SIDE, SIDE, 3);
             let ct = Ct::new(albedo.clone(), shading, residual).unwrap();
             let photo = ct.recompose().map(|v| linear_to_srgb(v.clamp(0.0, 1.0)));
-            write_png(&dir.join(format!("light{l}.png")), &photo, PngDepth::Eight).unwrap();
+            write_png8(&dir.join(format!("light{l}.png")), &photo);
             write_ct(&dir.join(format!("light{l}.intrinsics.exr")), &ct).unwrap();
         }
     }
+}
+
+/// A temporary folder with the data set in `data/`.
+fn dataset() -> (tempfile::TempDir, PathBuf) {
+    let tmp = common::tempdir();
+    let root = tmp.path().join("data");
+    make_dataset(&root);
+    (tmp, root)
+}
+
+/// `pixl eval --split all --dataset folder:ROOT --out OUT`.
+fn eval(root: &Path, out: &Path) -> Command {
+    let mut c = common::cmd();
+    c.args(["eval", "--split", "all", "--dataset"])
+        .arg(format!("folder:{}", root.display()))
+        .arg("--out")
+        .arg(out);
+    c
 }
 
 fn csv_rows(path: &Path) -> Vec<Vec<String>> {
@@ -46,9 +61,7 @@ fn csv_rows(path: &Path) -> Vec<Vec<String>> {
 
 #[test]
 fn eval_writes_three_outputs_and_identity_is_exact_on_equal_pairs() {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().join("data");
-    make_dataset(&root);
+    let (tmp, root) = dataset();
     let pairs = tmp.path().join("pairs.csv");
     std::fs::write(
         &pairs,
@@ -56,12 +69,8 @@ fn eval_writes_three_outputs_and_identity_is_exact_on_equal_pairs() {
     )
     .unwrap();
     let out = tmp.path().join("out");
-    let o = pixl()
-        .args(["eval", "--dataset"])
-        .arg(format!("folder:{}", root.display()))
+    let stdout = run(eval(&root, &out)
         .args([
-            "--split",
-            "all",
             "--baselines",
             "identity,compose",
             "--runs",
@@ -70,13 +79,9 @@ fn eval_writes_three_outputs_and_identity_is_exact_on_equal_pairs() {
             "1",
             "--pairs",
         ])
-        .arg(&pairs)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "stderr: {}", String::from_utf8_lossy(&o.stderr));
-    let stdout = String::from_utf8_lossy(&o.stdout);
+        .arg(&pairs))
+    .ok()
+    .stdout;
     assert!(
         stdout.contains("| Method | Lighting cue | PSNR ↑ | SSIM ↑ | LPIPS ↓ | Time (s) ↓ |"),
         "{stdout}"
@@ -115,42 +120,17 @@ fn eval_writes_three_outputs_and_identity_is_exact_on_equal_pairs() {
 
 #[test]
 fn default_pairs_fresh_model_equals_identity_and_json_summary() {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().join("data");
-    make_dataset(&root);
+    let (tmp, root) = dataset();
     // Fresh weights return the source exactly (zero-initialised modulation), so "Ours" must
     // score exactly like the identity on every pair.
-    let weights = tmp.path().join("tiny.safetensors");
-    let o = pixl()
-        .args(["model", "init", "--config", "tiny", "--seed", "0", "-o"])
-        .arg(&weights)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "model init: {}", String::from_utf8_lossy(&o.stderr));
+    let weights = tiny_weights(&tmp.path().join("tiny.safetensors"), 0);
     let out = tmp.path().join("out");
-    let o = pixl()
-        .args([
-            "eval",
-            "--json",
-            "--split",
-            "all",
-            "--baselines",
-            "identity",
-            "--runs",
-            "1",
-            "--warmups",
-            "0",
-        ])
-        .arg("--dataset")
-        .arg(format!("folder:{}", root.display()))
+    let summary = run(eval(&root, &out)
+        .args(["--json", "--baselines", "identity", "--runs", "1", "--warmups", "0"])
         .arg("--weights")
-        .arg(&weights)
-        .arg("--out")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "stderr: {}", String::from_utf8_lossy(&o.stderr));
-    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        .arg(&weights))
+    .ok()
+    .json();
     // Default list: per scene i → (i+1) mod 3, two scenes.
     assert_eq!(summary["pairs"], 6);
     let m = summary["methods"].as_array().unwrap();
@@ -176,56 +156,33 @@ fn default_pairs_fresh_model_equals_identity_and_json_summary() {
 
 #[test]
 fn bad_pair_list_names_file_and_line() {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().join("data");
-    make_dataset(&root);
+    let (tmp, root) = dataset();
     let pairs = tmp.path().join("pairs.csv");
     std::fs::write(&pairs, "scene0,light0.png,light1.png\nscene0,light0.png,nope.png\n").unwrap();
-    let o = pixl()
-        .args(["eval", "--split", "all", "--dataset"])
-        .arg(format!("folder:{}", root.display()))
-        .arg("--pairs")
-        .arg(&pairs)
-        .arg("--out")
-        .arg(tmp.path().join("out"))
-        .output()
-        .unwrap();
-    assert_eq!(o.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&o.stderr);
+    let o = run(eval(&root, &tmp.path().join("out")).arg("--pairs").arg(&pairs));
+    assert_eq!(o.code(), Some(1));
+    let err = &o.stderr;
     assert!(err.contains("pairs.csv, line 2") && err.contains("nope.png"), "{err}");
     assert!(!tmp.path().join("out").join("results.json").exists());
 }
 
 #[test]
 fn missing_intrinsics_is_an_error_for_compose_not_identity() {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().join("data");
-    make_dataset(&root);
+    let (tmp, root) = dataset();
     std::fs::remove_file(root.join("scene0/light1.intrinsics.exr")).unwrap();
-    let run = |baselines: &str| {
-        pixl()
-            .args([
-                "eval",
-                "-q",
-                "--split",
-                "all",
-                "--baselines",
-                baselines,
-                "--runs",
-                "0",
-                "--dataset",
-            ])
-            .arg(format!("folder:{}", root.display()))
-            .arg("--out")
-            .arg(tmp.path().join(format!("out-{baselines}")))
-            .output()
-            .unwrap()
+    let with = |baselines: &str| {
+        run(eval(&root, &tmp.path().join(format!("out-{baselines}"))).args([
+            "-q",
+            "--baselines",
+            baselines,
+            "--runs",
+            "0",
+        ]))
     };
-    let o = run("compose");
-    assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("light1.intrinsics.exr"));
-    let o = run("identity");
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = with("compose");
+    assert_eq!(o.code(), Some(1));
+    assert!(o.stderr.contains("light1.intrinsics.exr"));
+    with("identity").ok();
 }
 
 /// `--int8` evaluates the network with 8-bit linear layers: labelled as such, scoring within a
@@ -233,49 +190,23 @@ fn missing_intrinsics_is_an_error_for_compose_not_identity() {
 /// (with its reason) on a CPU without AVX-512 VNNI.
 #[test]
 fn int8_is_labelled_and_scores_as_f32() {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().join("data");
-    make_dataset(&root);
-    let weights = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo-weights/pixl-tiny-synth.safetensors");
-    let run = |extra: &[&str], out: &str| {
-        pixl()
-            .args([
-                "eval",
-                "-q",
-                "--split",
-                "all",
-                "--baselines",
-                "",
-                "--runs",
-                "0",
-                "--json",
-                "--dataset",
-            ])
-            .arg(format!("folder:{}", root.display()))
-            .arg("--out")
-            .arg(tmp.path().join(out))
-            .args(extra)
-            .output()
-            .unwrap()
+    let (tmp, root) = dataset();
+    let weights = common::repo_path("assets/demo-weights/pixl-tiny-synth.safetensors");
+    let with = |extra: &[&str], out: &str| {
+        run(eval(&root, &tmp.path().join(out))
+            .args(["-q", "--baselines", "", "--runs", "0", "--json"])
+            .args(extra))
     };
-    let w = weights.to_str().unwrap();
-    let f32_run = run(&["--weights", w], "f32");
-    assert!(f32_run.status.success(), "{}", String::from_utf8_lossy(&f32_run.stderr));
-    let int8_run = run(&["--weights", w, "--int8"], "int8");
+    let w = common::s(&weights);
+    let f32_run = with(&["--weights", w], "f32").ok();
+    let int8_run = with(&["--weights", w, "--int8"], "int8");
     if !pixl_nn::int8::available() {
-        assert_eq!(int8_run.status.code(), Some(1));
-        assert!(String::from_utf8_lossy(&int8_run.stderr).contains("VNNI"));
+        assert_eq!(int8_run.code(), Some(1));
+        assert!(int8_run.stderr.contains("VNNI"));
         return;
     }
-    assert!(
-        int8_run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&int8_run.stderr)
-    );
-    let row = |o: &std::process::Output| -> serde_json::Value {
-        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        v["methods"][0].clone()
-    };
+    let int8_run = int8_run.ok();
+    let row = |o: &Run| o.json()["methods"][0].clone();
     let (a, b) = (row(&f32_run), row(&int8_run));
     assert_eq!(
         (a["method"].as_str(), b["method"].as_str()),
@@ -283,18 +214,8 @@ fn int8_is_labelled_and_scores_as_f32() {
     );
     let (pa, pb) = (a["psnr"].as_f64().unwrap(), b["psnr"].as_f64().unwrap());
     assert!((pa - pb).abs() < 0.05, "PSNR f32 {pa} vs int8 {pb}");
-    let refused = run(&["--int8"], "none");
-    assert!(!refused.status.success());
-}
-
-/// Fresh `tiny` weights of seed `seed` at `path` (`pixl model init`).
-fn init_weights(path: &Path, seed: u32) {
-    let o = pixl()
-        .args(["model", "init", "--config", "tiny", "--seed", &seed.to_string(), "-o"])
-        .arg(path)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "model init: {}", String::from_utf8_lossy(&o.stderr));
+    let refused = with(&["--int8"], "none");
+    assert!(!refused.success());
 }
 
 /// Two `--weights` are two rows labelled by file stem, in the order given, and `--sheet` writes
@@ -303,42 +224,26 @@ fn init_weights(path: &Path, seed: u32) {
 /// images exactly; `--json` and results.json name it and its columns.
 #[test]
 fn two_weights_are_rows_by_stem_and_the_sheet_shows_the_first_pairs() {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().join("data");
-    make_dataset(&root);
+    let (tmp, root) = dataset();
     let (wa, wb) = (
         tmp.path().join("run-a.safetensors"),
         tmp.path().join("run-b.safetensors"),
     );
-    init_weights(&wa, 0);
-    init_weights(&wb, 1);
+    tiny_weights(&wa, 0);
+    tiny_weights(&wb, 1);
     let out = tmp.path().join("out");
     let sheet = out.join("sheet.png");
-    let o = pixl()
-        .args([
-            "eval",
-            "--json",
-            "--split",
-            "all",
-            "--baselines",
-            "identity",
-            "--runs",
-            "0",
-        ])
-        .arg("--dataset")
-        .arg(format!("folder:{}", root.display()))
+    let summary = run(eval(&root, &out)
+        .args(["--json", "--baselines", "identity", "--runs", "0"])
         .arg("--weights")
         .arg(&wa)
         .arg("--weights")
         .arg(&wb)
         .arg("--sheet")
         .arg(&sheet)
-        .args(["--sheet-pairs", "2", "--out"])
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "stderr: {}", String::from_utf8_lossy(&o.stderr));
-    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        .args(["--sheet-pairs", "2"]))
+    .ok()
+    .json();
     let results: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
     let columns = [
@@ -392,34 +297,26 @@ fn two_weights_are_rows_by_stem_and_the_sheet_shows_the_first_pairs() {
 /// a sheet that is not a PNG is refused too.
 #[test]
 fn weights_of_one_stem_and_a_non_png_sheet_are_refused() {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().join("data");
-    make_dataset(&root);
+    let (tmp, root) = dataset();
     let (a, b) = (tmp.path().join("a"), tmp.path().join("b"));
     std::fs::create_dir_all(&a).unwrap();
     std::fs::create_dir_all(&b).unwrap();
-    init_weights(&a.join("model.safetensors"), 0);
+    tiny_weights(&a.join("model.safetensors"), 0);
     std::fs::copy(a.join("model.safetensors"), b.join("model.safetensors")).unwrap();
-    let run = |extra: &[&std::ffi::OsStr]| {
-        pixl()
-            .args(["eval", "-q", "--split", "all", "--baselines", "identity", "--runs", "0"])
-            .arg("--dataset")
-            .arg(format!("folder:{}", root.display()))
-            .arg("--out")
-            .arg(tmp.path().join("out"))
-            .args(extra)
-            .output()
-            .unwrap()
+    let with = |extra: &[&std::ffi::OsStr]| {
+        run(eval(&root, &tmp.path().join("out"))
+            .args(["-q", "--baselines", "identity", "--runs", "0"])
+            .args(extra))
     };
     let (wa, wb) = (a.join("model.safetensors"), b.join("model.safetensors"));
-    let o = run(&[
+    let o = with(&[
         "--weights".as_ref(),
         wa.as_os_str(),
         "--weights".as_ref(),
         wb.as_os_str(),
     ]);
-    assert_eq!(o.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.code(), Some(1));
+    let err = &o.stderr;
     assert!(
         err.contains("same file stem \"model\"")
             && err.contains(&*wa.to_string_lossy())
@@ -428,8 +325,8 @@ fn weights_of_one_stem_and_a_non_png_sheet_are_refused() {
     );
     assert!(!tmp.path().join("out").exists());
     let sheet = tmp.path().join("sheet.jpg");
-    let o = run(&["--sheet".as_ref(), sheet.as_os_str()]);
-    assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains(".png"));
+    let o = with(&["--sheet".as_ref(), sheet.as_os_str()]);
+    assert_eq!(o.code(), Some(1));
+    assert!(o.stderr.contains(".png"));
     assert!(!tmp.path().join("out").exists() && !sheet.exists());
 }

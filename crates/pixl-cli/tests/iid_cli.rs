@@ -4,14 +4,12 @@
 //! a folder that is not a Marigold checkpoint, the other IID variant, an unsupported scheduler —
 //! each one clear error with nothing written. No test touches the network.
 mod common;
-use common::{copy_dir, pixl, run};
+use common::{cmd_in, copy_dir, run, write_image, write_png8, Run};
 use pixl_core::Image;
 use std::path::{Path, PathBuf};
 
 fn fixture(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../fixtures/marigold")
-        .join(name)
+    common::repo_path("fixtures/marigold").join(name)
 }
 
 /// A models folder with the fixture `src` (appearance | lighting) installed as `as_name`.
@@ -26,25 +24,30 @@ fn photo(path: &Path, w: usize, h: usize, seed: usize) {
     let img = Image::from_fn(w, h, 3, |x, y, c| {
         ((x * (c + 1) + y * 3 + seed * 7) % 23) as f32 / 22.0 * 0.8 + 0.1
     });
-    pixl_core::io::write_png(path, &img, pixl_core::io::PngDepth::Eight).unwrap();
+    write_png8(path, &img);
+}
+
+/// `pixl estimate WHAT PHOTO -o OUT FLAGS --models MODELS` with HOME at `home`.
+fn estimate(home: &Path, what: &str, photo: &Path, out: &Path, flags: &[&str], models: &Path) -> Run {
+    run(cmd_in(home)
+        .args(["estimate", what])
+        .arg(photo)
+        .arg("-o")
+        .arg(out)
+        .args(flags)
+        .arg("--models")
+        .arg(models))
 }
 
 #[test]
 fn materials_writes_linear_and_srgb_albedo_and_scalar_maps() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let m = models(t.path(), "appearance", "marigold-appearance");
     let p = t.path().join("p.png");
     photo(&p, 37, 27, 0);
     let out = t.path().join("mat");
-    let (o, stdout, err) = run(pixl(t.path())
-        .args(["estimate", "materials"])
-        .arg(&p)
-        .arg("-o")
-        .arg(&out)
-        .args(["--res", "32", "--steps", "2", "--json", "--models"])
-        .arg(&m));
-    assert!(o.status.success(), "{err}");
-    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let materials = |flags: &[&str]| estimate(t.path(), "materials", &p, &out, flags, &m);
+    let v = materials(&["--res", "32", "--steps", "2", "--json"]).ok().json();
     assert_eq!(v["steps"], 2);
     let lin = pixl_core::io::read_image(&out.join("albedo.exr")).unwrap();
     let png = pixl_core::io::read_image(&out.join("albedo.png")).unwrap();
@@ -63,31 +66,18 @@ fn materials_writes_linear_and_srgb_albedo_and_scalar_maps() {
         assert!(r.data.iter().all(|v| (0.0..=1.0).contains(v)), "{f} in [0, 1]");
     }
     // Same seed, same maps; another folder needs no --force, the same one does.
-    let (o, _, err) = run(pixl(t.path())
-        .args(["estimate", "materials"])
-        .arg(&p)
-        .arg("-o")
-        .arg(&out)
-        .args(["--res", "32", "--steps", "2", "--models"])
-        .arg(&m));
-    assert!(!o.status.success() && err.contains("--force"), "{err}");
+    let o = materials(&["--res", "32", "--steps", "2"]);
+    assert!(!o.success() && o.stderr.contains("--force"), "{}", o.stderr);
 }
 
 #[test]
 fn lighting_writes_a_ct_file_with_the_compose_rescale() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let m = models(t.path(), "lighting", "marigold-lighting");
     let p = t.path().join("p.png");
     photo(&p, 30, 20, 1);
     let out = t.path().join("p.intrinsics.exr");
-    let (o, _, err) = run(pixl(t.path())
-        .args(["estimate", "lighting"])
-        .arg(&p)
-        .arg("-o")
-        .arg(&out)
-        .args(["--res", "32", "--models"])
-        .arg(&m));
-    assert!(o.status.success(), "{err}");
+    estimate(t.path(), "lighting", &p, &out, &["--res", "32"], &m).ok();
     let ct = pixl_intrinsics::ct::read_ct(&out).unwrap();
     assert_eq!((ct.width(), ct.height()), (30, 20));
     let [a, s, r] = ct.groups();
@@ -97,45 +87,35 @@ fn lighting_writes_a_ct_file_with_the_compose_rescale() {
     assert!(sr.iter().all(|v| (0.0..=1.0).contains(v)));
     let max_sr = sr.iter().copied().fold(0f32, f32::max);
     assert!((max_sr - 1.0).abs() < 1e-6, "max of S, R after the rescale: {max_sr}");
-    let (o, _, err) = run(pixl(t.path())
+    run(cmd_in(t.path())
         .args(["intrinsics", "preview"])
         .arg(&out)
         .arg("-o")
-        .arg(t.path().join("preview.png")));
-    assert!(o.status.success(), "{err}");
-}
-
-/// Runs `args` expecting failure; returns stderr.
-fn fails(t: &Path, args: &[&str], models: &Path) -> String {
-    let (o, _, err) = run(pixl(t).args(args).arg("--models").arg(models));
-    assert!(!o.status.success(), "expected a failure: {args:?}");
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(!err.contains("panicked"), "{err}");
-    err
+        .arg(t.path().join("preview.png")))
+    .ok();
 }
 
 #[test]
 fn bad_checkpoints_are_refused_and_nothing_is_written() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let p = t.path().join("p.png");
     photo(&p, 20, 20, 2);
-    let ps = p.to_str().unwrap();
     let out_dir = t.path().join("mat");
-    let od = out_dir.to_str().unwrap();
     let ct = t.path().join("ct.exr");
-    let cs = ct.to_str().unwrap();
+    // `pixl estimate WHAT` with `models` fails cleanly with `needles`, writing nothing.
+    let refused = |what: &str, res: &str, models: &Path, needles: &[&str]| {
+        let out = if what == "materials" { &out_dir } else { &ct };
+        estimate(t.path(), what, &p, out, &["--res", res], models).fails(needles);
+        assert!(!out.exists());
+    };
 
     // The Lighting checkpoint where the Appearance one is expected.
     let m = models(&t.path().join("a"), "lighting", "marigold-appearance");
-    let err = fails(t.path(), &["estimate", "materials", ps, "-o", od, "--res", "32"], &m);
-    assert!(err.contains("Lighting") && err.contains("Appearance"), "{err}");
-    assert!(!out_dir.exists());
+    refused("materials", "32", &m, &["Lighting", "Appearance"]);
 
     // And the other way round.
     let m = models(&t.path().join("b"), "appearance", "marigold-lighting");
-    let err = fails(t.path(), &["estimate", "lighting", ps, "-o", cs, "--res", "32"], &m);
-    assert!(err.contains("Appearance") && err.contains("Lighting"), "{err}");
-    assert!(!ct.exists());
+    refused("lighting", "32", &m, &["Appearance", "Lighting"]);
 
     // A folder with the right file names that is another pipeline.
     let m = models(&t.path().join("c"), "lighting", "marigold-lighting");
@@ -146,9 +126,7 @@ fn bad_checkpoints_are_refused_and_nothing_is_written() {
         text.replace("MarigoldIntrinsicsPipeline", "MarigoldDepthPipeline"),
     )
     .unwrap();
-    let err = fails(t.path(), &["estimate", "lighting", ps, "-o", cs, "--res", "32"], &m);
-    assert!(err.contains("not a Marigold intrinsics"), "{err}");
-    assert!(!ct.exists());
+    refused("lighting", "32", &m, &["not a Marigold intrinsics"]);
 
     // A scheduler predicting something this port does not implement.
     let m = models(&t.path().join("d"), "lighting", "marigold-lighting");
@@ -156,31 +134,22 @@ fn bad_checkpoints_are_refused_and_nothing_is_written() {
     let text = std::fs::read_to_string(&sc).unwrap();
     assert!(text.contains("v_prediction"));
     std::fs::write(&sc, text.replace("v_prediction", "flow_prediction")).unwrap();
-    let err = fails(t.path(), &["estimate", "lighting", ps, "-o", cs, "--res", "32"], &m);
-    assert!(
-        err.contains("prediction_type") && err.contains("flow_prediction"),
-        "{err}"
-    );
-    assert!(!ct.exists());
+    refused("lighting", "32", &m, &["prediction_type", "flow_prediction"]);
 
     // A processing resolution the VAE cannot take.
     let m = models(&t.path().join("e"), "lighting", "marigold-lighting");
-    let err = fails(t.path(), &["estimate", "lighting", ps, "-o", cs, "--res", "30"], &m);
-    assert!(err.contains("multiple of 8"), "{err}");
-    assert!(!ct.exists());
+    refused("lighting", "30", &m, &["multiple of 8"]);
 }
 
 #[test]
 fn reconstruct_textures_the_scene_with_estimated_materials() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let m = models(t.path(), "appearance", "marigold-appearance");
     let p = t.path().join("p.png");
     photo(&p, 24, 16, 3);
-    let depth = Image::from_fn(24, 16, 1, |x, _, _| 2.0 + x as f32 * 0.01);
-    let d = t.path().join("d.exr");
-    pixl_core::io::write_image(&d, &depth).unwrap();
+    let d = common::write_depth(&t.path().join("d.exr"), 24, 16, |x, _| 2.0 + x as f32 * 0.01);
     let out = t.path().join("scene");
-    let (o, stdout, err) = run(pixl(t.path())
+    let v = run(cmd_in(t.path())
         .arg("reconstruct")
         .arg("--image")
         .arg(&p)
@@ -189,9 +158,9 @@ fn reconstruct_textures_the_scene_with_estimated_materials() {
         .args(["--materials", "marigold", "--materials-res", "32", "--json", "--models"])
         .arg(&m)
         .arg("-o")
-        .arg(&out));
-    assert!(o.status.success(), "{err}");
-    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+        .arg(&out))
+    .ok()
+    .json();
     assert_eq!(v["materials"], "marigold-appearance");
     for f in ["albedo.png", "roughness.png", "metallic.png"] {
         assert!(out.join(f).is_file(), "{f}");
@@ -210,10 +179,8 @@ fn miiw(root: &Path) -> Vec<PathBuf> {
         let d = root.join(scene);
         std::fs::create_dir_all(&d).unwrap();
         for l in 0..2 {
-            let p = d.join(format!("dir_{l}_mip2.jpg"));
             let img = Image::from_fn(20, 14, 3, |x, y, c| ((x + y + c + 3 * l + k) % 9) as f32 / 10.0 + 0.05);
-            pixl_core::io::write_image(&p, &img).unwrap();
-            v.push(p);
+            v.push(write_image(&d.join(format!("dir_{l}_mip2.jpg")), &img));
         }
     }
     v
@@ -221,13 +188,13 @@ fn miiw(root: &Path) -> Vec<PathBuf> {
 
 #[test]
 fn prepare_targets_writes_resumes_and_feeds_the_loader() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let m = models(t.path(), "lighting", "marigold-lighting");
     let root = t.path().join("miiw");
     let images = miiw(&root);
     let spec = format!("miiw:{}", root.display());
     let prep = |extra: &[&str]| {
-        let (o, stdout, err) = run(pixl(t.path())
+        run(cmd_in(t.path())
             .args([
                 "prepare-targets",
                 "--dataset",
@@ -240,9 +207,21 @@ fn prepare_targets_writes_resumes_and_feeds_the_loader() {
             ])
             .args(extra)
             .arg("--models")
-            .arg(&m));
-        assert!(o.status.success(), "{err}");
-        serde_json::from_str::<serde_json::Value>(&stdout).unwrap()
+            .arg(&m))
+        .ok()
+        .json()
+    };
+    // When each target was last written.
+    let written = || -> Vec<_> {
+        images
+            .iter()
+            .map(|p| {
+                std::fs::metadata(pixl_data::ct_cache_path(p))
+                    .unwrap()
+                    .modified()
+                    .unwrap()
+            })
+            .collect()
     };
     // A limited first run, then the rest, then nothing to do.
     let v = prep(&["--limit", "3"]);
@@ -251,28 +230,11 @@ fn prepare_targets_writes_resumes_and_feeds_the_loader() {
     let v = prep(&[]);
     assert_eq!(v["written"].as_array().unwrap().len(), 1);
     assert_eq!(v["already_cached"], 3);
-    let before: Vec<_> = images
-        .iter()
-        .map(|p| {
-            std::fs::metadata(pixl_data::ct_cache_path(p))
-                .unwrap()
-                .modified()
-                .unwrap()
-        })
-        .collect();
+    let before = written();
     let v = prep(&[]);
     assert_eq!(v["written"].as_array().unwrap().len(), 0);
     assert_eq!(v["already_cached"], 4);
-    let after: Vec<_> = images
-        .iter()
-        .map(|p| {
-            std::fs::metadata(pixl_data::ct_cache_path(p))
-                .unwrap()
-                .modified()
-                .unwrap()
-        })
-        .collect();
-    assert_eq!(before, after, "a second run rewrote finished targets");
+    assert_eq!(before, written(), "a second run rewrote finished targets");
     // The training loader reads them, for both splits.
     for split in [pixl_data::Split::Train, pixl_data::Split::Test] {
         let ds = pixl_data::open(&spec, split).unwrap();

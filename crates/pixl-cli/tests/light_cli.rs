@@ -1,9 +1,6 @@
 //! `pixl light add`: camera visibility of area lights (Blender's Ray Visibility ▸ Camera).
-use std::process::Command;
-
-fn pixl() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_pixl"))
-}
+mod common;
+use common::{cmd, run, write_file};
 
 const SCENE: &str = r#"
 [camera]
@@ -25,60 +22,37 @@ fn area_visibility(scene: &pixl_render::Scene) -> Vec<bool> {
 
 #[test]
 fn area_lights_are_seen_by_the_camera_only_when_asked() {
-    let dir = tempfile::tempdir().unwrap();
-    let scene = dir.path().join("scene.toml");
-    std::fs::write(&scene, SCENE).unwrap();
-    let add = |extra: &[&str], out: &str| {
-        pixl()
-            .args(["light", "add"])
-            .arg(&scene)
-            .args(["--type", "area", "--power", "100", "--position", "0,3,0"])
-            .args(extra)
-            .arg("-o")
-            .arg(dir.path().join(out))
-            .output()
-            .unwrap()
+    let dir = common::tempdir();
+    let scene = write_file(&dir.path().join("scene.toml"), SCENE);
+    // `pixl light add` of `flags` and `--visible-to-camera` if `visible`, into `name`.
+    let add = |flags: &str, visible: bool, name: &str| {
+        let out = dir.path().join(name);
+        let mut c = cmd();
+        c.args(["light", "add"]).arg(&scene).args(flags.split_whitespace());
+        if visible {
+            c.arg("--visible-to-camera");
+        }
+        (run(c.arg("-o").arg(&out)), out)
     };
+    let area = "--type area --power 100 --position 0,3,0";
     // Default: off (Blender's default), and not written to the file.
-    let o = add(&[], "plain.toml");
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    add(area, false, "plain.toml").0.ok();
     let text = std::fs::read_to_string(dir.path().join("plain.toml")).unwrap();
     assert!(!text.contains("visible_to_camera"), "{text}");
     let plain = pixl_render::Scene::load(&dir.path().join("plain.toml")).unwrap();
     assert_eq!(area_visibility(&plain), [false]);
     // Asked for: on, and it survives a save/load round trip.
-    let o = add(&["--visible-to-camera"], "seen.toml");
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    add(area, true, "seen.toml").0.ok();
     let seen = pixl_render::Scene::load(&dir.path().join("seen.toml")).unwrap();
     assert_eq!(area_visibility(&seen), [true]);
     // A point light's sphere can be seen too (it needs a radius); a sun never is: the flag is
     // refused, nothing written.
-    let add_typed = |args: &[&str], name: &str| {
-        let out = dir.path().join(name);
-        let o = pixl()
-            .args(["light", "add"])
-            .arg(&scene)
-            .args(args)
-            .args(["--visible-to-camera", "-o"])
-            .arg(&out)
-            .output()
-            .unwrap();
-        (o, out)
-    };
-    let (o, out) = add_typed(
-        &[
-            "--type",
-            "point",
-            "--power",
-            "10",
-            "--position",
-            "0,1,0",
-            "--radius",
-            "0.1",
-        ],
+    let (o, out) = add(
+        "--type point --power 10 --position 0,1,0 --radius 0.1",
+        true,
         "point.toml",
     );
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o.ok();
     let seen = pixl_render::Scene::load(&out).unwrap();
     assert!(matches!(
         seen.lights.as_slice(),
@@ -87,19 +61,16 @@ fn area_lights_are_seen_by_the_camera_only_when_asked() {
             ..
         }]
     ));
-    let (o, out) = add_typed(
-        &["--type", "point", "--power", "10", "--position", "0,1,0"],
-        "bare.toml",
-    );
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("--visible-to-camera") && err.contains("radius"), "{err}");
-    assert!(!out.exists());
-    let (o, out) = add_typed(&["--type", "sun", "--strength", "3"], "sun.toml");
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("--visible-to-camera") && err.contains("sun"), "{err}");
-    assert!(!out.exists());
+    for (flags, name, why) in [
+        ("--type point --power 10 --position 0,1,0", "bare.toml", "radius"),
+        ("--type sun --strength 3", "sun.toml", "sun"),
+    ] {
+        let (o, out) = add(flags, true, name);
+        assert!(!o.success());
+        let err = &o.stderr;
+        assert!(err.contains("--visible-to-camera") && err.contains(why), "{err}");
+        assert!(!out.exists());
+    }
 }
 
 /// A 4 m x 3 m wall 3 m in front of a camera at the origin looking down -Z (the frame of a scene
@@ -116,32 +87,24 @@ shape = { type = "quad", size = [4.0, 3.0] }
 transform = { translate = [0.0, 0.0, -3.0] }
 "#;
 
-/// Runs `pixl light add` on the wall scene with `flags`, returning (exit code, stdout, stderr,
-/// the lights written).
-fn add_to_wall(flags: &[&str]) -> (Option<i32>, String, String, Vec<pixl_render::Light>) {
-    let dir = tempfile::tempdir().unwrap();
-    let scene = dir.path().join("scene.toml");
-    std::fs::write(&scene, WALL).unwrap();
+/// Runs `pixl light add` on the wall scene with `flags` (split at white space), returning (exit
+/// code, stdout, stderr, the lights written).
+fn add_to_wall(flags: &str) -> (Option<i32>, String, String, Vec<pixl_render::Light>) {
+    let dir = common::tempdir();
+    let scene = write_file(&dir.path().join("scene.toml"), WALL);
     let out = dir.path().join("lit.toml");
-    let o = pixl()
+    let o = run(cmd()
         .args(["light", "add"])
         .arg(&scene)
-        .args(flags)
+        .args(flags.split_whitespace())
         .arg("-o")
-        .arg(&out)
-        .output()
-        .unwrap();
+        .arg(&out));
     let lights = if out.exists() {
         pixl_render::Scene::load(&out).unwrap().lights
     } else {
         Vec::new()
     };
-    (
-        o.status.code(),
-        String::from_utf8_lossy(&o.stdout).to_string(),
-        String::from_utf8_lossy(&o.stderr).to_string(),
-        lights,
-    )
+    (o.code(), o.stdout, o.stderr, lights)
 }
 
 fn close(a: [f32; 3], b: [f32; 3], tol: f32) -> bool {
@@ -153,7 +116,7 @@ fn at_pixel_puts_the_light_off_the_surface_seen_through_the_pixel() {
     use pixl_render::Light;
     // The image centre sees the wall's centre (0, 0, -3), normal +Z; the default offset is 0.15 x
     // the bounds' diagonal (5 m) = 0.75 m; the default power gives 4 W/m² there: 4π·4·0.75².
-    let (code, stdout, stderr, lights) = add_to_wall(&["--type", "point", "--at-pixel", "20,15"]);
+    let (code, stdout, stderr, lights) = add_to_wall("--type point --at-pixel 20,15");
     assert_eq!(code, Some(0), "{stderr}");
     match &lights[..] {
         [Light::Point { position, power, .. }] => {
@@ -170,16 +133,7 @@ fn at_pixel_puts_the_light_off_the_surface_seen_through_the_pixel() {
     // An off-centre pixel, an explicit offset; a spot there aims at the picked point.
     let f = 15.0 / 30f32.to_radians().tan();
     let hit = [3.0 * 10.5 / f, 3.0 * 9.5 / f, -3.0];
-    let (code, _, stderr, lights) = add_to_wall(&[
-        "--type",
-        "spot",
-        "--at-pixel",
-        "30.5,5.5",
-        "--offset",
-        "0.5",
-        "--power",
-        "100",
-    ]);
+    let (code, _, stderr, lights) = add_to_wall("--type spot --at-pixel 30.5,5.5 --offset 0.5 --power 100");
     assert_eq!(code, Some(0), "{stderr}");
     match &lights[..] {
         [Light::Spot {
@@ -195,10 +149,10 @@ fn at_pixel_puts_the_light_off_the_surface_seen_through_the_pixel() {
         other => panic!("{other:?}"),
     }
     // A pixel that sees only the background, and one outside the image.
-    let (code, _, stderr, _) = add_to_wall(&["--type", "point", "--at-pixel", "0.5,15"]);
+    let (code, _, stderr, _) = add_to_wall("--type point --at-pixel 0.5,15");
     assert_eq!(code, Some(1));
     assert!(stderr.contains("no surface"), "{stderr}");
-    let (code, _, stderr, _) = add_to_wall(&["--type", "point", "--at-pixel", "45,3"]);
+    let (code, _, stderr, _) = add_to_wall("--type point --at-pixel 45,3");
     assert_eq!(code, Some(1));
     assert!(stderr.contains("outside the 40x30 image"), "{stderr}");
 }
@@ -207,7 +161,7 @@ fn at_pixel_puts_the_light_off_the_surface_seen_through_the_pixel() {
 fn from_and_azimuth_place_lights_around_the_scene_bounds() {
     use pixl_render::Light;
     // Bounds centre (0, 0, -3), half-diagonal 2.5 m: default distance 3.75 m.
-    let (code, stdout, stderr, lights) = add_to_wall(&["--type", "spot", "--from", "left", "--power", "100"]);
+    let (code, stdout, stderr, lights) = add_to_wall("--type spot --from left --power 100");
     assert_eq!(code, Some(0), "{stderr}");
     match &lights[..] {
         [Light::Spot {
@@ -222,18 +176,7 @@ fn from_and_azimuth_place_lights_around_the_scene_bounds() {
     }
     assert!(stdout.contains("from left"), "{stdout}");
     // Azimuth 90 (right), elevation 30, 2 m: by hand.
-    let (code, _, stderr, lights) = add_to_wall(&[
-        "--type",
-        "point",
-        "--azimuth",
-        "90",
-        "--elevation",
-        "30",
-        "--distance",
-        "2",
-        "--power",
-        "10",
-    ]);
+    let (code, _, stderr, lights) = add_to_wall("--type point --azimuth 90 --elevation 30 --distance 2 --power 10");
     assert_eq!(code, Some(0), "{stderr}");
     let e = 30f32.to_radians();
     match &lights[..] {
@@ -246,18 +189,7 @@ fn from_and_azimuth_place_lights_around_the_scene_bounds() {
         other => panic!("{other:?}"),
     }
     // --from left raised by --elevation 30, 2 m: by hand, mirrored from the case above.
-    let (code, stdout, stderr, lights) = add_to_wall(&[
-        "--type",
-        "point",
-        "--from",
-        "left",
-        "--elevation",
-        "30",
-        "--distance",
-        "2",
-        "--power",
-        "10",
-    ]);
+    let (code, stdout, stderr, lights) = add_to_wall("--type point --from left --elevation 30 --distance 2 --power 10");
     assert_eq!(code, Some(0), "{stderr}");
     assert!(stdout.contains("from left, elevation 30"), "{stdout}");
     assert!(
@@ -265,35 +197,17 @@ fn from_and_azimuth_place_lights_around_the_scene_bounds() {
         "{lights:?}"
     );
     // Above already is an elevation.
-    let (code, _, stderr, lights) = add_to_wall(&[
-        "--type",
-        "point",
-        "--from",
-        "above",
-        "--elevation",
-        "30",
-        "--power",
-        "10",
-    ]);
+    let (code, _, stderr, lights) = add_to_wall("--type point --from above --elevation 30 --power 10");
     assert_eq!(code, Some(1));
     assert!(stderr.contains("--from above already sets the elevation"), "{stderr}");
     assert!(lights.is_empty());
     // "front" is the camera's side; "behind" the far side of the scene.
-    let (_, _, _, lights) = add_to_wall(&["--type", "point", "--from", "front", "--distance", "1", "--power", "10"]);
+    let (_, _, _, lights) = add_to_wall("--type point --from front --distance 1 --power 10");
     assert!(matches!(&lights[..], [Light::Point { position, .. }] if close(*position, [0.0, 0.0, -2.0], 1e-5)));
-    let (_, _, _, lights) = add_to_wall(&[
-        "--type",
-        "point",
-        "--from",
-        "behind",
-        "--distance",
-        "1",
-        "--power",
-        "10",
-    ]);
+    let (_, _, _, lights) = add_to_wall("--type point --from behind --distance 1 --power 10");
     assert!(matches!(&lights[..], [Light::Point { position, .. }] if close(*position, [0.0, 0.0, -4.0], 1e-5)));
     // A sun from above shines straight down, at the default 4 W/m².
-    let (code, _, stderr, lights) = add_to_wall(&["--type", "sun", "--from", "above"]);
+    let (code, _, stderr, lights) = add_to_wall("--type sun --from above");
     assert_eq!(code, Some(0), "{stderr}");
     match &lights[..] {
         [Light::Sun {
@@ -312,90 +226,36 @@ fn from_and_azimuth_place_lights_around_the_scene_bounds() {
 fn flags_that_do_not_fit_the_light_are_refused_and_nothing_is_written() {
     for (flags, want) in [
         (
-            &[
-                "--type",
-                "point",
-                "--power",
-                "10",
-                "--position",
-                "0,1,0",
-                "--spot-size",
-                "30",
-            ][..],
+            "--type point --power 10 --position 0,1,0 --spot-size 30",
             "--spot-size is for spot lights",
         ),
         (
-            &["--type", "point", "--power", "10", "--position", "0,1,0", "--size", "2"][..],
+            "--type point --power 10 --position 0,1,0 --size 2",
             "--size is for area lights",
         ),
+        ("--type sun --strength 3 --angle 1 --power 5", "--power is for point"),
+        ("--type sun --at-pixel 20,15", "a sun has no position"),
         (
-            &["--type", "sun", "--strength", "3", "--angle", "1", "--power", "5"][..],
-            "--power is for point",
-        ),
-        (&["--type", "sun", "--at-pixel", "20,15"][..], "a sun has no position"),
-        (
-            &["--type", "spot", "--power", "10", "--position", "0,1,0", "--angle", "2"][..],
+            "--type spot --power 10 --position 0,1,0 --angle 2",
             "--angle is for sun lights",
         ),
+        ("--spot-size 30 --position 0,1,0 --power 1", "the default; give --type"),
+        ("--type point --power nan --position 0,1,0", "finite, non-negative"),
+        ("--type point --power -3 --position 0,1,0", "finite, non-negative"),
+        ("--type point --position 0,1,0", "needs --power"),
         (
-            &["--spot-size", "30", "--position", "0,1,0", "--power", "1"][..],
-            "the default; give --type",
-        ),
-        (
-            &["--type", "point", "--power", "nan", "--position", "0,1,0"][..],
-            "finite, non-negative",
-        ),
-        (
-            &["--type", "point", "--power", "-3", "--position", "0,1,0"][..],
-            "finite, non-negative",
-        ),
-        (&["--type", "point", "--position", "0,1,0"][..], "needs --power"),
-        (
-            &[
-                "--type",
-                "point",
-                "--power",
-                "1",
-                "--position",
-                "0,1,0",
-                "--color",
-                "1,0",
-            ][..],
+            "--type point --power 1 --position 0,1,0 --color 1,0",
             "expected 3 values r,g,b",
         ),
+        ("--type point --power 1 --position 0,1", "expected 3 values x,y,z"),
+        ("--type point --power 1 --elevation 120", "[-90, 90]"),
+        ("--preset cool-side-flash --power 5", "either --preset"),
         (
-            &["--type", "point", "--power", "1", "--position", "0,1"][..],
-            "expected 3 values x,y,z",
-        ),
-        (
-            &["--type", "point", "--power", "1", "--elevation", "120"][..],
-            "[-90, 90]",
-        ),
-        (&["--preset", "cool-side-flash", "--power", "5"][..], "either --preset"),
-        (
-            &[
-                "--type",
-                "point",
-                "--power",
-                "1",
-                "--position",
-                "0,1,0",
-                "--offset",
-                "1",
-            ][..],
+            "--type point --power 1 --position 0,1,0 --offset 1",
             "give --at-pixel too",
         ),
         (
-            &[
-                "--type",
-                "point",
-                "--power",
-                "1",
-                "--position",
-                "0,1,0",
-                "--distance",
-                "1",
-            ][..],
+            "--type point --power 1 --position 0,1,0 --distance 1",
             "give one of them",
         ),
     ] {
@@ -406,34 +266,16 @@ fn flags_that_do_not_fit_the_light_are_refused_and_nothing_is_written() {
     }
     // Placements exclude each other (clap: exit 2).
     for flags in [
-        &[
-            "--type",
-            "point",
-            "--power",
-            "1",
-            "--position",
-            "0,1,0",
-            "--from",
-            "left",
-        ][..],
-        &[
-            "--type",
-            "point",
-            "--power",
-            "1",
-            "--at-pixel",
-            "3,3",
-            "--azimuth",
-            "10",
-        ][..],
-        &["--type", "point", "--power", "1", "--from", "left", "--azimuth", "10"][..],
+        "--type point --power 1 --position 0,1,0 --from left",
+        "--type point --power 1 --at-pixel 3,3 --azimuth 10",
+        "--type point --power 1 --from left --azimuth 10",
     ] {
         let (code, _, _, lights) = add_to_wall(flags);
         assert_eq!(code, Some(2), "{flags:?}");
         assert!(lights.is_empty());
     }
     // Implausible power: a warning, not an error.
-    let (code, _, stderr, lights) = add_to_wall(&["--type", "point", "--power", "2e6", "--position", "0,1,0"]);
+    let (code, _, stderr, lights) = add_to_wall("--type point --power 2e6 --position 0,1,0");
     assert_eq!(code, Some(0), "{stderr}");
     assert!(stderr.contains("implausibly bright"), "{stderr}");
     assert_eq!(lights.len(), 1);
@@ -441,24 +283,14 @@ fn flags_that_do_not_fit_the_light_are_refused_and_nothing_is_written() {
 
 #[test]
 fn scene_info_reports_bounds_camera_axes_and_lights() {
-    let dir = tempfile::tempdir().unwrap();
-    let scene = dir.path().join("scene.toml");
-    std::fs::write(&scene, WALL).unwrap();
-    let o = pixl()
+    let dir = common::tempdir();
+    let scene = write_file(&dir.path().join("scene.toml"), WALL);
+    run(cmd()
         .args(["light", "add"])
         .arg(&scene)
-        .args(["--type", "spot", "--from", "above", "--power", "40", "--name", "top"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let o = pixl()
-        .args(["scene", "info"])
-        .arg(&scene)
-        .arg("--json")
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("one JSON document on stdout");
+        .args(["--type", "spot", "--from", "above", "--power", "40", "--name", "top"]))
+    .ok();
+    let v = run(cmd().args(["scene", "info"]).arg(&scene).arg("--json")).ok().json();
     let arr =
         |x: &serde_json::Value| -> Vec<f64> { x.as_array().unwrap().iter().map(|n| n.as_f64().unwrap()).collect() };
     assert_eq!(arr(&v["bounds"]["min"]), [-2.0, -1.5, -3.0]);
@@ -477,8 +309,7 @@ fn scene_info_reports_bounds_camera_axes_and_lights() {
     assert_eq!(lights[0]["name"], "top");
     assert!((lights[0]["position"][1].as_f64().unwrap() - 3.75).abs() < 1e-4);
     // Text form: the same facts, in words.
-    let o = pixl().args(["scene", "info"]).arg(&scene).output().unwrap();
-    let text = String::from_utf8_lossy(&o.stdout);
+    let text = run(cmd().args(["scene", "info"]).arg(&scene)).stdout;
     assert!(
         text.contains("+Y up") && text.contains("bounds: min (-2.00, -1.50, -3.00)") && text.contains("spot 40.0 W"),
         "{text}"

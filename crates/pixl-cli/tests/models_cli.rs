@@ -1,58 +1,20 @@
 //! `pixl models list | path | fetch` on fake weight folders: the lookup order (models folder,
 //! then the Hugging Face cache in the Python layout), `--json`, and the offline failures. No test
 //! touches the network: every run has `PIXL_OFFLINE=1` or `--offline`, and a private HOME.
+mod common;
+use common::{cmd_in, run, write_file};
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use std::sync::{Arc, Mutex};
-
-/// `pixl` with an environment that points only into `home` (no user cache, no network).
-fn pixl(home: &Path) -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_pixl"));
-    for v in [
-        "PIXL_MODELS_DIR",
-        "PIXL_OFFLINE",
-        "HF_HUB_CACHE",
-        "HUGGINGFACE_HUB_CACHE",
-        "HF_HOME",
-        "XDG_CACHE_HOME",
-        "HF_TOKEN",
-        "HF_HUB_OFFLINE",
-        "ALL_PROXY",
-        "all_proxy",
-        "HTTPS_PROXY",
-        "https_proxy",
-        "HTTP_PROXY",
-        "http_proxy",
-    ] {
-        c.env_remove(v);
-    }
-    // Offline, and even if that failed, a download would go to a closed local port.
-    c.env("HOME", home)
-        .env("PIXL_OFFLINE", "1")
-        .env("HF_ENDPOINT", "http://127.0.0.1:9");
-    c
-}
-
-fn run(c: &mut Command) -> (Output, String, String) {
-    let o = c.output().expect("run pixl");
-    let out = String::from_utf8_lossy(&o.stdout).into_owned();
-    let err = String::from_utf8_lossy(&o.stderr).into_owned();
-    (o, out, err)
-}
-
-fn write(p: &Path, bytes: &[u8]) {
-    std::fs::create_dir_all(p.parent().unwrap()).unwrap();
-    std::fs::write(p, bytes).unwrap();
-}
 
 /// A Python-layout cache entry for `repo` with the DA3 files (plain files, refs/main).
 fn fake_cache(hub: &Path, repo: &str, commit: &str) -> PathBuf {
     let root = hub.join(format!("models--{}", repo.replace('/', "--")));
     let snap = root.join("snapshots").join(commit);
-    write(&snap.join("config.json"), b"{}");
-    write(&snap.join("model.safetensors"), b"weights");
-    write(&root.join("refs").join("main"), commit.as_bytes());
+    write_file(&snap.join("config.json"), b"{}");
+    write_file(&snap.join("model.safetensors"), b"weights");
+    write_file(&root.join("refs").join("main"), commit.as_bytes());
     snap
 }
 
@@ -66,12 +28,11 @@ fn entry<'a>(list: &'a serde_json::Value, name: &str) -> &'a serde_json::Value {
 
 #[test]
 fn list_says_what_is_where() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let hf = t.path().join("hf");
     let snap = fake_cache(&hf.join("hub"), "depth-anything/DA3METRIC-LARGE", "c0ffee");
-    let (o, out, err) = run(pixl(t.path()).env("HF_HOME", &hf).args(["models", "list", "--json"]));
-    assert!(o.status.success(), "{err}");
-    let v: serde_json::Value = serde_json::from_str(&out).unwrap_or_else(|e| panic!("{e}: {out}"));
+    let list = |args: &[&str]| run(cmd_in(t.path()).env("HF_HOME", &hf).args(["models", "list"]).args(args)).ok();
+    let v = list(&["--json"]).json();
     let m = entry(&v, "da3-metric");
     assert_eq!(m["present"], true);
     assert_eq!(m["dir"], snap.display().to_string());
@@ -85,8 +46,7 @@ fn list_says_what_is_where() {
     );
     assert_eq!(m["repo"], "depth-anything/DA3MONO-LARGE");
 
-    let (o, out, err) = run(pixl(t.path()).env("HF_HOME", &hf).args(["models", "list"]));
-    assert!(o.status.success(), "{err}");
+    let out = list(&[]).stdout;
     for needle in [
         "da3-metric",
         "da3-mono",
@@ -102,86 +62,80 @@ fn list_says_what_is_where() {
 /// disk does not download.
 #[test]
 fn path_and_fetch_use_the_cache_without_network() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     let decoy = fake_cache(&t.path().join("hf/hub"), "depth-anything/DA3MONO-LARGE", "aaa");
     let snap = fake_cache(&t.path().join("cache"), "depth-anything/DA3MONO-LARGE", "bbb");
-    let env = |c: &mut Command| {
-        c.env("HF_HOME", t.path().join("hf"))
-            .env("HF_HUB_CACHE", t.path().join("cache"));
+    let models = |args: &[&str]| {
+        run(cmd_in(t.path())
+            .env("HF_HOME", t.path().join("hf"))
+            .env("HF_HUB_CACHE", t.path().join("cache"))
+            .arg("models")
+            .args(args))
+        .ok()
     };
-    let mut c = pixl(t.path());
-    env(&mut c);
-    let (o, out, err) = run(c.args(["models", "path", "da3-mono"]));
-    assert!(o.status.success(), "{err}");
+    let out = models(&["path", "da3-mono"]).stdout;
     assert_eq!(out.trim(), snap.display().to_string());
     assert_ne!(snap, decoy);
 
-    let mut c = pixl(t.path());
-    env(&mut c);
-    let (o, out, err) = run(c.args(["models", "path", "da3-mono", "--json"]));
-    assert!(o.status.success(), "{err}");
-    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let v = models(&["path", "da3-mono", "--json"]).json();
     assert_eq!(
         v["files"]["model.safetensors"],
         snap.join("model.safetensors").display().to_string()
     );
     assert!(v["source"].as_str().unwrap().contains("bbb"), "{v}");
 
-    let mut c = pixl(t.path());
-    env(&mut c);
-    let (o, out, err) = run(c.args(["models", "fetch", "da3-mono", "--offline"]));
-    assert!(o.status.success(), "{err}");
-    assert!(out.contains(&snap.display().to_string()), "{out}");
-    assert!(!err.contains("downloading"), "{err}");
+    let o = models(&["fetch", "da3-mono", "--offline"]);
+    assert!(o.stdout.contains(&snap.display().to_string()), "{}", o.stdout);
+    assert!(!o.stderr.contains("downloading"), "{}", o.stderr);
 }
 
 /// `--models DIR` (and PIXL_MODELS_DIR) come before the Hugging Face cache.
 #[test]
 fn models_folder_comes_first() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     fake_cache(
         &t.path().join(".cache/huggingface/hub"),
         "depth-anything/DA3METRIC-LARGE",
         "c1",
     );
     let own = t.path().join("weights/da3-metric");
-    write(&own.join("config.json"), b"{}");
-    write(&own.join("model.safetensors"), b"w");
+    write_file(&own.join("config.json"), b"{}");
+    write_file(&own.join("model.safetensors"), b"w");
     // Without a models folder: the default cache under HOME.
-    let (o, out, err) = run(pixl(t.path()).args(["models", "path", "da3-metric"]));
-    assert!(o.status.success(), "{err}");
+    let path = |c: &mut Command| run(c).ok().stdout;
+    let out = path(cmd_in(t.path()).args(["models", "path", "da3-metric"]));
     assert!(out.trim().ends_with("snapshots/c1"), "{out}");
     // With one, by flag and by variable.
     let weights = t.path().join("weights");
-    let (o, out, err) = run(pixl(t.path())
-        .args(["models", "path", "da3-metric", "--models"])
-        .arg(&weights));
-    assert!(o.status.success(), "{err}");
+    let out = path(
+        cmd_in(t.path())
+            .args(["models", "path", "da3-metric", "--models"])
+            .arg(&weights),
+    );
     assert_eq!(out.trim(), own.display().to_string());
-    let (o, out, err) = run(pixl(t.path())
-        .env("PIXL_MODELS_DIR", &weights)
-        .args(["models", "path", "da3-metric"]));
-    assert!(o.status.success(), "{err}");
+    let out = path(
+        cmd_in(t.path())
+            .env("PIXL_MODELS_DIR", &weights)
+            .args(["models", "path", "da3-metric"]),
+    );
     assert_eq!(out.trim(), own.display().to_string());
 }
 
 #[test]
 fn a_models_folder_lacking_a_file_is_named() {
-    let t = tempfile::tempdir().unwrap();
-    write(&t.path().join("w/da3-mono/config.json"), b"{}");
-    let (o, _, err) = run(pixl(t.path())
+    let t = common::tempdir();
+    write_file(&t.path().join("w/da3-mono/config.json"), b"{}");
+    run(cmd_in(t.path())
         .args(["models", "fetch", "da3-mono", "--models"])
-        .arg(t.path().join("w")));
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(err.contains("model.safetensors") && err.contains("da3-mono"), "{err}");
-    assert!(!err.contains("panicked"), "{err}");
+        .arg(t.path().join("w")))
+    .fails(&["model.safetensors", "da3-mono"]);
 }
 
 /// Offline with nothing on disk: an immediate error naming `pixl models fetch NAME` and
 /// `--models DIR`, whichever way offline was asked for.
 #[test]
 fn offline_without_weights_names_the_fetch_command() {
-    let t = tempfile::tempdir().unwrap();
+    let t = common::tempdir();
     /// Extra flags, and an environment variable to set.
     type Case<'a> = (&'a [&'a str], Option<(&'a str, &'a str)>);
     let cases: [Case; 3] = [
@@ -190,14 +144,15 @@ fn offline_without_weights_names_the_fetch_command() {
         (&[], Some(("HF_HUB_OFFLINE", "1"))),
     ];
     for (flags, var) in cases {
-        let mut c = pixl(t.path());
+        let mut c = cmd_in(t.path());
         c.env_remove("PIXL_OFFLINE");
         if let Some((k, v)) = var {
             c.env(k, v);
         }
         let start = std::time::Instant::now();
-        let (o, _, err) = run(c.args(["models", "fetch", "da3-mono"]).args(flags));
-        assert_eq!(o.status.code(), Some(1), "{flags:?} {var:?}: {err}");
+        let o = run(c.args(["models", "fetch", "da3-mono"]).args(flags));
+        let err = &o.stderr;
+        assert_eq!(o.code(), Some(1), "{flags:?} {var:?}: {err}");
         assert!(
             err.contains("pixl models fetch da3-mono") && err.contains("--models DIR"),
             "{flags:?} {var:?}: {err}"
@@ -207,19 +162,21 @@ fn offline_without_weights_names_the_fetch_command() {
         assert!(start.elapsed().as_secs() < 20);
     }
     // `path` never downloads: not on disk is an error naming the fetch command.
-    let mut c = pixl(t.path());
-    c.env_remove("PIXL_OFFLINE");
-    let (o, _, err) = run(c.args(["models", "path", "da3-metric"]));
-    assert_eq!(o.status.code(), Some(1), "{err}");
+    let o = run(cmd_in(t.path())
+        .env_remove("PIXL_OFFLINE")
+        .args(["models", "path", "da3-metric"]));
+    assert_eq!(o.code(), Some(1), "{}", o.stderr);
     assert!(
-        err.contains("not on this machine") && err.contains("pixl models fetch da3-metric"),
-        "{err}"
+        o.stderr.contains("not on this machine") && o.stderr.contains("pixl models fetch da3-metric"),
+        "{}",
+        o.stderr
     );
-    let (o, _, err) = run(pixl(t.path()).args(["models", "path", "da3"]));
-    assert_eq!(o.status.code(), Some(1));
+    let o = run(cmd_in(t.path()).args(["models", "path", "da3"]));
+    assert_eq!(o.code(), Some(1));
     assert!(
-        err.contains("unknown model `da3`") && err.contains("da3-metric"),
-        "{err}"
+        o.stderr.contains("unknown model `da3`") && o.stderr.contains("da3-metric"),
+        "{}",
+        o.stderr
     );
 }
 
@@ -285,7 +242,7 @@ x-repo-commit: {commit}\r\ncontent-range: bytes {a}-{b}/{len}\r\nconnection: clo
 /// no request), and `pixl estimate depth` then runs on the downloaded checkpoint.
 #[test]
 fn downloads_on_first_use_then_reuses_the_cache() {
-    let tiny = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/da3/tiny");
+    let tiny = common::repo_path("fixtures/da3/tiny");
     let config = std::fs::read(tiny.join("config.json")).unwrap();
     let weights = std::fs::read(tiny.join("model.safetensors")).unwrap();
     let (endpoint, log) = serve(
@@ -293,16 +250,23 @@ fn downloads_on_first_use_then_reuses_the_cache() {
         vec![("config.json", config.clone()), ("model.safetensors", weights.clone())],
         "0123456789abcdef0123456789abcdef01234567",
     );
-    let t = tempfile::tempdir().unwrap();
-    let online = |c: &mut Command| {
+    let t = common::tempdir();
+    // Online, against the stand-in.
+    let online = || {
+        let mut c = cmd_in(t.path());
         c.env_remove("PIXL_OFFLINE").env("HF_ENDPOINT", &endpoint);
+        c
     };
     // Into a models folder.
     let weights_dir = t.path().join("weights");
-    let mut c = pixl(t.path());
-    online(&mut c);
-    let (o, out, err) = run(c.args(["models", "fetch", "da3-mono", "--models"]).arg(&weights_dir));
-    assert!(o.status.success(), "{err}");
+    let fetch = || {
+        run(online()
+            .args(["models", "fetch", "da3-mono", "--models"])
+            .arg(&weights_dir))
+        .ok()
+    };
+    let first = fetch();
+    let (out, err) = (&first.stdout, &first.stderr);
     let notice = err
         .find("licence: Apache-2.0")
         .unwrap_or_else(|| panic!("no licence notice: {err}"));
@@ -318,30 +282,28 @@ fn downloads_on_first_use_then_reuses_the_cache() {
     let requests = log.lock().unwrap().len();
     assert!(requests >= 2, "{:?}", log.lock().unwrap());
     // Found again offline, and a second fetch asks nothing.
-    let (o, out, err) = run(pixl(t.path())
+    let out = run(cmd_in(t.path())
         .args(["models", "path", "da3-mono", "--models"])
-        .arg(&weights_dir));
-    assert!(o.status.success(), "{err}");
+        .arg(&weights_dir))
+    .ok()
+    .stdout;
     assert_eq!(out.trim(), snap.display().to_string());
-    let mut c = pixl(t.path());
-    online(&mut c);
-    let (o, _, err) = run(c.args(["models", "fetch", "da3-mono", "--models"]).arg(&weights_dir));
-    assert!(o.status.success() && !err.contains("downloading"), "{err}");
+    let err = fetch().stderr;
+    assert!(!err.contains("downloading"), "{err}");
     assert_eq!(log.lock().unwrap().len(), requests);
 
     // On first use by `estimate depth`, into the Hugging Face cache (HF_HOME).
     let photo = tiny.join("input_b.png");
     let depth = t.path().join("d.exr");
-    let mut c = pixl(t.path());
-    online(&mut c);
-    let (o, _, err) = run(c
+    let err = run(online()
         .env("HF_HOME", t.path().join("hf"))
         .args(["estimate", "depth"])
         .arg(&photo)
         .arg("-o")
         .arg(&depth)
-        .args(["--model", "da3-mono", "--process-res", "98"]));
-    assert!(o.status.success(), "{err}");
+        .args(["--model", "da3-mono", "--process-res", "98"]))
+    .ok()
+    .stderr;
     assert!(err.contains("licence: Apache-2.0"), "{err}");
     assert!(t
         .path()

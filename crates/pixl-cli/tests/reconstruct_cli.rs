@@ -1,25 +1,19 @@
 //! `pixl reconstruct` end to end on a tiny generated photo + depth, and its bad inputs.
+mod common;
+use common::{cmd, run, write_npy_f32 as npy_f32, Run};
 use std::path::Path;
 use std::process::Command;
 
-fn pixl() -> Command {
-    let mut c = Command::new(env!("CARGO_BIN_EXE_pixl"));
-    // Never the network: no weights are downloaded by these tests.
-    c.env("PIXL_OFFLINE", "1").env("HF_ENDPOINT", "http://127.0.0.1:9");
+/// `pixl reconstruct --image DIR/photo.png --depth DIR/DEPTH -o OUT`.
+fn reconstruct(dir: &Path, depth: &str, out: &Path) -> Command {
+    let mut c = cmd();
+    c.args(["reconstruct", "--image"])
+        .arg(dir.join("photo.png"))
+        .arg("--depth")
+        .arg(dir.join(depth))
+        .arg("-o")
+        .arg(out);
     c
-}
-
-fn npy_f32(path: &Path, h: usize, w: usize, vals: &[f32]) {
-    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({h}, {w}), }}");
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut b = b"\x93NUMPY\x01\x00".to_vec();
-    b.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    b.extend_from_slice(header.as_bytes());
-    b.extend(vals.iter().flat_map(|v| v.to_le_bytes()));
-    std::fs::write(path, b).unwrap();
 }
 
 fn photo(path: &Path, w: u32, h: u32) {
@@ -30,7 +24,7 @@ fn photo(path: &Path, w: u32, h: u32) {
 
 #[test]
 fn reconstructs_a_step_into_a_loadable_scene() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (w, h) = (8usize, 6usize);
     photo(&dir.path().join("photo.png"), w as u32, h as u32);
     // Left half 2 m, right half 4 m: the column of quads across the step is cut.
@@ -38,16 +32,7 @@ fn reconstructs_a_step_into_a_loadable_scene() {
     npy_f32(&dir.path().join("d.npy"), h, w, &depth);
     for fmt in ["glb", "obj", "ply"] {
         let out = dir.path().join(format!("scene_{fmt}"));
-        let o = pixl()
-            .args(["reconstruct", "--image"])
-            .arg(dir.path().join("photo.png"))
-            .arg("--depth")
-            .arg(dir.path().join("d.npy"))
-            .args(["--fov", "60", "--format", fmt, "-o"])
-            .arg(&out)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{fmt}: {}", String::from_utf8_lossy(&o.stderr));
+        run(reconstruct(dir.path(), "d.npy", &out).args(["--fov", "60", "--format", fmt])).ok();
         let scene = pixl_render::Scene::load(&out.join("scene.toml")).unwrap();
         assert_eq!((scene.camera.width, scene.camera.height), (w as u32, h as u32));
         assert!((scene.camera.fov_y() - 60.0).abs() < 1e-3);
@@ -75,27 +60,19 @@ fn reconstructs_a_step_into_a_loadable_scene() {
 
 #[test]
 fn bad_inputs_are_refused_with_the_file_named() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     photo(&dir.path().join("photo.png"), 4, 4);
     let mut nan = vec![1.0f32; 16];
     nan[5] = f32::NAN;
     npy_f32(&dir.path().join("nan.npy"), 4, 4, &nan);
-    let run = |depth: &str| {
-        let o = pixl()
-            .args(["reconstruct", "--image"])
-            .arg(dir.path().join("photo.png"))
-            .arg("--depth")
-            .arg(dir.path().join(depth))
-            .arg("-o")
-            .arg(dir.path().join("out"))
-            .output()
-            .unwrap();
-        assert!(!o.status.success(), "{depth} should fail");
-        String::from_utf8_lossy(&o.stderr).into_owned()
+    let refused = |depth: &str| {
+        let o = run(&mut reconstruct(dir.path(), depth, &dir.path().join("out")));
+        assert!(!o.success(), "{depth} should fail");
+        o.stderr
     };
-    let e = run("nan.npy");
+    let e = refused("nan.npy");
     assert!(e.contains("nan.npy") && e.contains("x=1, y=1"), "{e}");
-    let e = run("missing.exr");
+    let e = refused("missing.exr");
     assert!(e.contains("missing.exr") && e.contains("not found"), "{e}");
     assert!(!dir.path().join("out").join("scene.toml").exists());
 }
@@ -105,26 +82,15 @@ fn bad_inputs_are_refused_with_the_file_named() {
 /// here); `--pixel-centres` keeps them at the border pixels' centres, half a pixel inside.
 #[test]
 fn mesh_reaches_the_frame_edges_unless_pixel_centres() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (w, h, d) = (6usize, 4usize, 3.0f32);
     photo(&dir.path().join("photo.png"), w as u32, h as u32);
     npy_f32(&dir.path().join("d.npy"), h, w, &vec![d; w * h]);
     let f = 5.0f32;
     let projected_extent = |extra: &[&str]| {
         let out = dir.path().join(format!("scene{}", extra.len()));
-        let o = pixl()
-            .args(["reconstruct", "--image"])
-            .arg(dir.path().join("photo.png"))
-            .arg("--depth")
-            .arg(dir.path().join("d.npy"))
-            .args(["--focal", "5", "--format", "ply"])
-            .args(extra)
-            .arg("-o")
-            .arg(&out)
-            .output()
-            .unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let mesh = pixl_render::export::load_mesh(&out.join("mesh.ply")).unwrap();
+        let flags = [&["--focal", "5"][..], extra].concat();
+        let (mesh, _, _) = reconstruct_ply(dir.path(), "d.npy", &flags, &out);
         assert_eq!(mesh.num_triangles(), 2 * (w - 1) * (h - 1));
         let px: Vec<f32> = mesh
             .positions
@@ -154,23 +120,11 @@ fn mesh_reaches_the_frame_edges_unless_pixel_centres() {
     );
 }
 
-/// Runs `pixl reconstruct` with `args` into `out` (PLY) and returns the mesh, stdout and stderr.
-fn reconstruct_ply(args: &[&std::ffi::OsStr], out: &Path) -> (pixl_render::mesh::Mesh, String, String) {
-    let o = pixl()
-        .arg("reconstruct")
-        .args(args)
-        .args(["--format", "ply", "-o"])
-        .arg(out)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&o.stderr).into_owned();
-    assert!(o.status.success(), "{err}");
+/// Runs [`reconstruct`] with `flags` into `out` (PLY) and returns the mesh, stdout and stderr.
+fn reconstruct_ply(dir: &Path, depth: &str, flags: &[&str], out: &Path) -> (pixl_render::mesh::Mesh, String, String) {
+    let o = run(reconstruct(dir, depth, out).args(flags).args(["--format", "ply"])).ok();
     let mesh = pixl_render::export::load_mesh(&out.join("mesh.ply")).unwrap();
-    (mesh, String::from_utf8_lossy(&o.stdout).into_owned(), err)
-}
-
-fn os(s: &str) -> &std::ffi::OsStr {
-    std::ffi::OsStr::new(s)
+    (mesh, o.stdout, o.stderr)
 }
 
 /// Distinct vertex depths (−z), sorted, rounded to 1e-4.
@@ -184,19 +138,11 @@ fn depths(mesh: &pixl_render::mesh::Mesh) -> Vec<f32> {
 /// A depth map of another size is resampled to the photo (with a warning), not refused.
 #[test]
 fn depth_of_another_size_is_resampled() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (w, h) = (8usize, 6usize);
     photo(&dir.path().join("photo.png"), w as u32, h as u32);
     npy_f32(&dir.path().join("small.npy"), 3, 4, &[2.0; 12]);
-    let (mesh, _, err) = reconstruct_ply(
-        &[
-            os("--image"),
-            dir.path().join("photo.png").as_os_str(),
-            os("--depth"),
-            dir.path().join("small.npy").as_os_str(),
-        ],
-        &dir.path().join("out"),
-    );
+    let (mesh, _, err) = reconstruct_ply(dir.path(), "small.npy", &[], &dir.path().join("out"));
     assert!(
         err.contains("small.npy") && err.contains("4x3") && err.contains("resampling"),
         "{err}"
@@ -209,36 +155,23 @@ fn depth_of_another_size_is_resampled() {
 /// default 1–10 m, linear in 1/depth, with a warning.
 #[test]
 fn relative_and_disparity_depth_map_to_metres() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (w, h) = (8usize, 2usize);
     photo(&dir.path().join("photo.png"), w as u32, h as u32);
     // Column x holds x + 1 (1..8).
     let ramp: Vec<f32> = (0..w * h).map(|i| (i % w) as f32 + 1.0).collect();
     npy_f32(&dir.path().join("ramp.npy"), h, w, &ramp);
-    let base = |kind: &str| {
-        vec![
-            os("--image").to_owned(),
-            dir.path().join("photo.png").into_os_string(),
-            os("--depth").to_owned(),
-            dir.path().join("ramp.npy").into_os_string(),
-            os("--depth-kind").to_owned(),
-            std::ffi::OsString::from(kind),
-            os("--max-jump").to_owned(),
-            os("100").to_owned(),
-        ]
+    let ramp_as = |kind: &str, extra: &[&str], out: &str| {
+        let flags = [&["--depth-kind", kind, "--max-jump", "100"][..], extra].concat();
+        reconstruct_ply(dir.path(), "ramp.npy", &flags, &dir.path().join(out))
     };
-    let mut args = base("relative");
-    args.extend([os("--depth-range").to_owned(), os("0.5,4").to_owned()]);
-    let refs: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let (mesh, _, _) = reconstruct_ply(&refs, &dir.path().join("rel"));
+    let (mesh, _, _) = ramp_as("relative", &["--depth-range", "0.5,4"], "rel");
     let want: Vec<f32> = (0..w)
         .map(|x| ((0.5 + 3.5 * x as f64 / 7.0) * 1e4).round() as f32 / 1e4)
         .collect();
     assert_eq!(depths(&mesh), want);
 
-    let args = base("disparity");
-    let refs: Vec<&std::ffi::OsStr> = args.iter().map(|a| a.as_os_str()).collect();
-    let (mesh, _, err) = reconstruct_ply(&refs, &dir.path().join("disp"));
+    let (mesh, _, err) = ramp_as("disparity", &[], "disp");
     assert!(err.contains("--depth-range") && err.contains("1-10 m"), "{err}");
     // Disparity x+1: largest (8) → 1 m, smallest (1) → 10 m, 1/d linear in between.
     let mut want: Vec<f32> = (0..w)
@@ -254,7 +187,7 @@ fn relative_and_disparity_depth_map_to_metres() {
 /// Without --stride, the stride is raised until the grid fits --max-triangles (and said so).
 #[test]
 fn max_triangles_picks_the_stride() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (w, h) = (41usize, 31usize);
     photo(&dir.path().join("photo.png"), w as u32, h as u32);
     npy_f32(&dir.path().join("d.npy"), h, w, &vec![3.0; w * h]);
@@ -273,30 +206,18 @@ fn max_triangles_picks_the_stride() {
     let s = (1..).find(|&s| tris(s) <= budget).unwrap();
     assert!(s > 1);
     let (mesh, out, _) = reconstruct_ply(
-        &[
-            os("--image"),
-            dir.path().join("photo.png").as_os_str(),
-            os("--depth"),
-            dir.path().join("d.npy").as_os_str(),
-            os("--max-triangles"),
-            os("300"),
-        ],
+        dir.path(),
+        "d.npy",
+        &["--max-triangles", "300"],
         &dir.path().join("auto"),
     );
     assert_eq!(mesh.num_triangles(), tris(s));
     assert!(out.contains(&format!("stride {s}")), "{out}");
     // An explicit stride is kept.
     let (mesh, _, _) = reconstruct_ply(
-        &[
-            os("--image"),
-            dir.path().join("photo.png").as_os_str(),
-            os("--depth"),
-            dir.path().join("d.npy").as_os_str(),
-            os("--max-triangles"),
-            os("300"),
-            os("--stride"),
-            os("1"),
-        ],
+        dir.path(),
+        "d.npy",
+        &["--max-triangles", "300", "--stride", "1"],
         &dir.path().join("explicit"),
     );
     assert_eq!(mesh.num_triangles(), tris(1));
@@ -306,74 +227,60 @@ fn max_triangles_picks_the_stride() {
 /// would overwrite: the photo there is refused before any work and stays as it was.
 #[test]
 fn an_output_folder_holding_the_photo_is_refused() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let scene = dir.path().join("scene");
     std::fs::create_dir(&scene).unwrap();
     photo(&scene.join("photo.png"), 4, 4);
     let before = std::fs::read(scene.join("photo.png")).unwrap();
     npy_f32(&dir.path().join("d.npy"), 4, 4, &[1.0; 16]);
-    let o = pixl()
+    run(cmd()
         .args(["reconstruct", "--image"])
         .arg(scene.join("photo.png"))
         .arg("--depth")
         .arg(dir.path().join("d.npy"))
         .arg("-o")
-        .arg(&scene)
-        .output()
-        .unwrap();
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(1), "{err}");
-    assert!(err.contains("photo.png"), "{err}");
+        .arg(&scene))
+    .fails(&["photo.png"]);
     assert_eq!(std::fs::read(scene.join("photo.png")).unwrap(), before);
     assert!(!scene.join("scene.toml").exists());
 }
 
-fn run_reconstruct(dir: &Path, depth: &str, extra: &[&str], out: &Path) -> (bool, String) {
-    let o = pixl()
-        .args(["reconstruct", "--image"])
-        .arg(dir.join("photo.png"))
-        .arg("--depth")
-        .arg(dir.join(depth))
-        .args(["--fov", "60"])
-        .args(extra)
-        .arg("-o")
-        .arg(out)
-        .output()
-        .unwrap();
-    (o.status.success(), String::from_utf8_lossy(&o.stderr).into_owned())
+/// [`reconstruct`] with a 60° field of view and `extra`.
+fn run_reconstruct(dir: &Path, depth: &str, extra: &[&str], out: &Path) -> Run {
+    run(reconstruct(dir, depth, out).args(["--fov", "60"]).args(extra))
 }
 
 /// Re-running over a scene someone has lit keeps it unless --force; --force replaces it.
 #[test]
 fn an_existing_scene_is_replaced_only_with_force() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     photo(&dir.path().join("photo.png"), 8, 6);
     npy_f32(&dir.path().join("d.npy"), 6, 8, &[2.0; 48]);
     let out = dir.path().join("scene");
-    let (ok, err) = run_reconstruct(dir.path(), "d.npy", &[], &out);
-    assert!(ok, "{err}");
+    run_reconstruct(dir.path(), "d.npy", &[], &out).ok();
     let scene_file = out.join("scene.toml");
-    let o = pixl()
+    run(cmd()
         .args(["light", "add"])
         .arg(&scene_file)
-        .args(["--preset", "warm-overhead-flash"])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        .args(["--preset", "warm-overhead-flash"]))
+    .ok();
     let lit = std::fs::read_to_string(&scene_file).unwrap();
     assert_eq!(pixl_render::Scene::load(&scene_file).unwrap().lights.len(), 1);
 
-    let (ok, err) = run_reconstruct(dir.path(), "d.npy", &[], &out);
-    assert!(!ok);
-    assert!(err.contains("--force") && err.contains("scene.toml"), "{err}");
+    let o = run_reconstruct(dir.path(), "d.npy", &[], &out);
+    assert!(!o.success());
+    assert!(
+        o.stderr.contains("--force") && o.stderr.contains("scene.toml"),
+        "{}",
+        o.stderr
+    );
     assert_eq!(
         std::fs::read_to_string(&scene_file).unwrap(),
         lit,
         "the lit scene was touched"
     );
 
-    let (ok, err) = run_reconstruct(dir.path(), "d.npy", &["--force"], &out);
-    assert!(ok, "{err}");
+    run_reconstruct(dir.path(), "d.npy", &["--force"], &out).ok();
     assert!(pixl_render::Scene::load(&scene_file).unwrap().lights.is_empty());
 }
 
@@ -381,7 +288,7 @@ fn an_existing_scene_is_replaced_only_with_force() {
 /// the photo, missing depth, or depth jumps (counted by hand on 8×6 maps); nothing is written.
 #[test]
 fn an_empty_mesh_blames_the_right_flag() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     photo(&dir.path().join("photo.png"), 8, 6);
     // Flat but for the top-left pixel: at stride 1 only its two triangles are cut; at stride
     // 1000 the grid is the four corners and both of its triangles use that pixel.
@@ -409,8 +316,9 @@ fn an_empty_mesh_blames_the_right_flag() {
     ];
     for (depth, flags, needles) in cases {
         let out = dir.path().join(format!("out-{depth}"));
-        let (ok, err) = run_reconstruct(dir.path(), depth, flags, &out);
-        assert!(!ok, "{depth}");
+        let o = run_reconstruct(dir.path(), depth, flags, &out);
+        assert!(!o.success(), "{depth}");
+        let err = &o.stderr;
         for n in needles {
             assert!(err.contains(n), "{depth}: {n:?} not in {err}");
         }
@@ -423,22 +331,14 @@ fn an_empty_mesh_blames_the_right_flag() {
 /// column of quads across it is cut, 2·7·5 − 2·5 = 60 triangles kept, 10 cut).
 #[test]
 fn json_summary_counts_the_mesh() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     photo(&dir.path().join("photo.png"), 8, 6);
     let depth: Vec<f32> = (0..48).map(|i| if i % 8 < 4 { 2.0 } else { 4.0 }).collect();
     npy_f32(&dir.path().join("d.npy"), 6, 8, &depth);
     let out = dir.path().join("scene");
-    let o = pixl()
-        .args(["reconstruct", "--quiet", "--json", "--fov", "60", "--image"])
-        .arg(dir.path().join("photo.png"))
-        .arg("--depth")
-        .arg(dir.path().join("d.npy"))
-        .arg("-o")
-        .arg(&out)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("stdout is one JSON document");
+    let v = run(reconstruct(dir.path(), "d.npy", &out).args(["--quiet", "--json", "--fov", "60"]))
+        .ok()
+        .json();
     assert_eq!(v["triangles"], 60);
     assert_eq!(v["triangles_cut"], 10);
     assert_eq!((v["width"].as_u64(), v["height"].as_u64()), (Some(8), Some(6)));

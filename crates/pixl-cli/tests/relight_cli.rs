@@ -3,39 +3,29 @@
 //! `--max-side`, relit at the working size and applied at full size, with its planned memory
 //! bounded), an output that is an input is refused, an impossible size is refused with its
 //! figure, `model info` totals.
+mod common;
+use common::{pixl_q, relight_args, s, tiny_weights, write_image};
 use pixl_core::Image;
 use pixl_intrinsics::ct::{write_ct, Ct};
-use std::path::Path;
-use std::process::Command;
+use std::path::{Path, PathBuf};
 
-fn pixl(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_pixl"))
-        .args(args)
-        .arg("--quiet")
-        .output()
-        .expect("run pixl")
-}
-
+/// Runs `pixl args --quiet`, expecting success; returns stdout.
 fn ok(args: &[&str]) -> String {
-    let o = pixl(args);
-    assert!(
-        o.status.success(),
-        "pixl {args:?} failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).to_string()
+    pixl_q(args).ok().stdout
 }
 
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
+/// `relight_args` then `extra`.
+fn relight_with<'a>(src: &'a Path, ct: &'a Path, w: &'a Path, out: &'a Path, extra: &[&'a str]) -> Vec<&'a str> {
+    let mut v = relight_args(src, ct, w, out);
+    v.extend_from_slice(extra);
+    v
 }
 
 #[test]
 fn fresh_weights_return_png_and_exr_sources_exactly() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (w, h) = (37, 21); // odd size: padding and cropping are exercised
-    let w_path = dir.path().join("w.safetensors");
-    ok(&["model", "init", "--config", "tiny", "--seed", "3", "-o", s(&w_path)]);
+    let w_path = fresh_weights(dir.path());
     let ct = Ct::new(
         Image::from_fn(w, h, 3, |x, _, c| 0.2 + 0.1 * c as f32 + 0.01 * x as f32),
         Image::from_fn(w, h, 3, |_, y, _| 0.5 + 0.05 * y as f32),
@@ -52,20 +42,9 @@ fn fresh_weights_return_png_and_exr_sources_exactly() {
         ((x * 7 + y * 3 + c) % 101) as f32 / 101.0 + 1e-7 * x as f32
     });
     for (name, img) in [("src.png", &png), ("src.exr", &exr)] {
-        let src = dir.path().join(name);
-        pixl_core::io::write_image(&src, img).unwrap();
+        let src = write_image(&dir.path().join(name), img);
         let out = dir.path().join(format!("out-{name}"));
-        ok(&[
-            "relight",
-            "--source",
-            s(&src),
-            "--intrinsics",
-            s(&ct_path),
-            "--weights",
-            s(&w_path),
-            "--out",
-            s(&out),
-        ]);
+        ok(&relight_args(&src, &ct_path, &w_path, &out));
         let a = pixl_core::io::read_rgb(&src).unwrap();
         let b = pixl_core::io::read_rgb(&out).unwrap();
         assert_eq!((a.width, a.height), (b.width, b.height));
@@ -94,15 +73,13 @@ fn model_info_paper_total_is_in_the_papers_range() {
 
 #[test]
 fn bench_rejects_a_bad_size() {
-    let o = pixl(&["bench", "model", "--config", "tiny", "--size", "512by512"]);
-    assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("WIDTHxHEIGHT"));
+    let o = pixl_q(&["bench", "model", "--config", "tiny", "--size", "512by512"]);
+    assert!(!o.success());
+    assert!(o.stderr.contains("WIDTHxHEIGHT"));
 }
 
-fn fresh_weights(dir: &Path) -> std::path::PathBuf {
-    let w = dir.join("w.safetensors");
-    ok(&["model", "init", "--config", "tiny", "--seed", "3", "-o", s(&w)]);
-    w
+fn fresh_weights(dir: &Path) -> PathBuf {
+    tiny_weights(&dir.join("w.safetensors"), 3)
 }
 
 fn smooth_ct(w: usize, h: usize) -> Ct {
@@ -120,30 +97,17 @@ fn smooth_ct(w: usize, h: usize) -> Ct {
 /// network would plan at full size.
 #[test]
 fn a_photo_larger_than_max_side_relights_at_full_size_with_bounded_memory() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let weights = fresh_weights(dir.path());
     let (w, h) = (1500, 1000);
     let photo = Image::from_fn(w, h, 3, |x, y, c| ((x * 31 + y * 17 + c * 7) % 65536) as f32 / 65535.0);
-    let src = dir.path().join("big.png");
-    pixl_core::io::write_image(&src, &photo).unwrap();
+    let src = write_image(&dir.path().join("big.png"), &photo);
     // C_T at the photo's size: area-averaged to the working size.
     let ct_path = dir.path().join("ct.exr");
     write_ct(&ct_path, &smooth_ct(w, h)).unwrap();
     let out = dir.path().join("relit.png");
-    let json = ok(&[
-        "relight",
-        "--source",
-        s(&src),
-        "--intrinsics",
-        s(&ct_path),
-        "--weights",
-        s(&weights),
-        "--max-side",
-        "128",
-        "-o",
-        s(&out),
-        "--json",
-    ]);
+    let at_128 = relight_with(&src, &ct_path, &weights, &out, &["--max-side", "128"]);
+    let json = ok(&[&at_128[..], &["--json"]].concat());
     let v: serde_json::Value = serde_json::from_str(&json).unwrap();
     assert_eq!((v["width"].as_u64(), v["height"].as_u64()), (Some(1500), Some(1000)));
     assert_eq!(
@@ -174,35 +138,11 @@ fn a_photo_larger_than_max_side_relights_at_full_size_with_bounded_memory() {
 
     // A C_T at the working size is used as it is; any other size is refused, naming both.
     write_ct(&ct_path, &smooth_ct(128, 85)).unwrap();
-    ok(&[
-        "relight",
-        "--source",
-        s(&src),
-        "--intrinsics",
-        s(&ct_path),
-        "--weights",
-        s(&weights),
-        "--max-side",
-        "128",
-        "-o",
-        s(&out),
-    ]);
+    ok(&at_128);
     write_ct(&ct_path, &smooth_ct(100, 85)).unwrap();
-    let o = pixl(&[
-        "relight",
-        "--source",
-        s(&src),
-        "--intrinsics",
-        s(&ct_path),
-        "--weights",
-        s(&weights),
-        "--max-side",
-        "128",
-        "-o",
-        s(&out),
-    ]);
-    assert_eq!(o.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&o.stderr);
+    let o = pixl_q(&at_128);
+    assert_eq!(o.code(), Some(1));
+    let err = &o.stderr;
     assert!(err.contains("1500x1000") && err.contains("128x85"), "{err}");
 }
 
@@ -210,10 +150,12 @@ fn a_photo_larger_than_max_side_relights_at_full_size_with_bounded_memory() {
 /// before any work, and the source is left as it was.
 #[test]
 fn output_equal_to_the_source_is_refused_and_nothing_is_overwritten() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let weights = fresh_weights(dir.path());
-    let src = dir.path().join("a.png");
-    pixl_core::io::write_image(&src, &Image::from_fn(20, 12, 3, |x, _, _| x as f32 / 20.0)).unwrap();
+    let src = write_image(
+        &dir.path().join("a.png"),
+        &Image::from_fn(20, 12, 3, |x, _, _| x as f32 / 20.0),
+    );
     let ct_path = dir.path().join("ct.exr");
     write_ct(&ct_path, &smooth_ct(20, 12)).unwrap();
     let before = std::fs::read(&src).unwrap();
@@ -222,17 +164,7 @@ fn output_equal_to_the_source_is_refused_and_nothing_is_overwritten() {
     let roundabout = sub.join("..").join("a.png");
     for out in [src.clone(), roundabout] {
         for form in [
-            vec![
-                "relight",
-                "--source",
-                s(&src),
-                "--intrinsics",
-                s(&ct_path),
-                "--weights",
-                s(&weights),
-                "--out",
-                s(&out),
-            ],
+            relight_args(&src, &ct_path, &weights, &out),
             vec![
                 "relight",
                 s(&src),
@@ -244,41 +176,20 @@ fn output_equal_to_the_source_is_refused_and_nothing_is_overwritten() {
                 s(&out),
             ],
         ] {
-            let o = pixl(&form);
-            assert_eq!(o.status.code(), Some(1), "{form:?}");
-            let err = String::from_utf8_lossy(&o.stderr);
-            assert!(err.contains("input"), "{form:?}: {err}");
+            let o = pixl_q(&form);
+            assert_eq!(o.code(), Some(1), "{form:?}");
+            assert!(o.stderr.contains("input"), "{form:?}: {}", o.stderr);
             assert_eq!(std::fs::read(&src).unwrap(), before, "the source was changed");
         }
     }
     // The C_T, the weights: inputs too.
-    let o = pixl(&[
-        "relight",
-        "--source",
-        s(&src),
-        "--intrinsics",
-        s(&ct_path),
-        "--weights",
-        s(&weights),
-        "--out",
-        s(&weights),
-    ]);
-    assert_eq!(o.status.code(), Some(1));
+    let o = pixl_q(&relight_args(&src, &ct_path, &weights, &weights));
+    assert_eq!(o.code(), Some(1));
     // An output format the extension does not name, and a missing folder, are refused first.
     for bad in ["relit.txt", "no/such/dir/relit.png"] {
         let out = dir.path().join(bad);
-        let o = pixl(&[
-            "relight",
-            "--source",
-            s(&src),
-            "--intrinsics",
-            s(&ct_path),
-            "--weights",
-            s(&weights),
-            "--out",
-            s(&out),
-        ]);
-        assert_eq!(o.status.code(), Some(1), "{bad}");
+        let o = pixl_q(&relight_args(&src, &ct_path, &weights, &out));
+        assert_eq!(o.code(), Some(1), "{bad}");
         assert!(!out.exists());
     }
 }
@@ -287,28 +198,16 @@ fn output_equal_to_the_source_is_refused_and_nothing_is_overwritten() {
 /// the figure and the flag to change.
 #[test]
 fn an_impossible_request_is_refused_with_its_figure_and_the_flag_to_change() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let weights = fresh_weights(dir.path());
-    let src = dir.path().join("a.png");
-    pixl_core::io::write_image(&src, &Image::from_fn(640, 480, 3, |_, _, _| 0.5)).unwrap();
+    let src = write_image(&dir.path().join("a.png"), &Image::from_fn(640, 480, 3, |_, _, _| 0.5));
     let ct_path = dir.path().join("ct.exr");
     write_ct(&ct_path, &smooth_ct(640, 480)).unwrap();
     let out = dir.path().join("relit.png");
-    let o = pixl(&[
-        "relight",
-        "--source",
-        s(&src),
-        "--intrinsics",
-        s(&ct_path),
-        "--weights",
-        s(&weights),
-        "--out",
-        s(&out),
-        "--max-memory",
-        "0.05",
-    ]);
-    assert_eq!(o.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&o.stderr);
+    let small = relight_with(&src, &ct_path, &weights, &out, &["--max-memory", "0.05"]);
+    let o = pixl_q(&small);
+    assert_eq!(o.code(), Some(1));
+    let err = &o.stderr;
     assert!(
         err.contains("GB") && err.contains("--max-side") && err.contains("640x480"),
         "{err}"
@@ -320,21 +219,7 @@ fn an_impossible_request_is_refused_with_its_figure_and_the_flag_to_change() {
         .filter_map(|t| t.split(|c: char| !c.is_ascii_digit()).next()?.parse::<u32>().ok())
         .find(|s| *s < 1024)
         .expect("a suggested --max-side");
-    ok(&[
-        "relight",
-        "--source",
-        s(&src),
-        "--intrinsics",
-        s(&ct_path),
-        "--weights",
-        s(&weights),
-        "--out",
-        s(&out),
-        "--max-memory",
-        "0.05",
-        "--max-side",
-        &side.to_string(),
-    ]);
+    ok(&[&small[..], &["--max-side", &side.to_string()]].concat());
 }
 
 /// `--int8` with the bundled weights: the relit photo stays within a small difference of the
@@ -342,44 +227,41 @@ fn an_impossible_request_is_refused_with_its_figure_and_the_flag_to_change() {
 /// it is refused with bf16.
 #[test]
 fn int8_relights_close_to_f32_and_refuses_bf16() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (w, h) = (96, 64);
     let ct_path = dir.path().join("ct.exr");
     write_ct(&ct_path, &smooth_ct(w, h)).unwrap();
-    let src = dir.path().join("src.png");
     let photo = Image::from_fn(w, h, 3, |x, y, c| {
         0.15 + 0.6 * ((x as f32 * 0.11 + c as f32).sin() * 0.5 + 0.5) * (y as f32 / h as f32)
     });
-    pixl_core::io::write_image(&src, &photo).unwrap();
+    let src = write_image(&dir.path().join("src.png"), &photo);
     // `pixl relight` of the photo under the C_T with `extra` flags, into `name`.
     let relight = |name: &str, extra: &[&str]| {
         let out = dir.path().join(name);
-        let result = {
-            let mut args = vec![
-                "relight",
-                "--source",
-                s(&src),
-                "--intrinsics",
-                s(&ct_path),
-                "--out",
-                s(&out),
-            ];
-            args.extend_from_slice(extra);
-            pixl(&args)
-        };
-        (result, out)
+        let mut args = vec![
+            "relight",
+            "--source",
+            s(&src),
+            "--intrinsics",
+            s(&ct_path),
+            "--out",
+            s(&out),
+        ];
+        args.extend_from_slice(extra);
+        (pixl_q(&args), out)
     };
-    let read = |(result, out): (std::process::Output, std::path::PathBuf)| {
-        assert!(result.status.success(), "{}", String::from_utf8_lossy(&result.stderr));
+    let read = |(result, out): (common::Run, PathBuf)| {
+        result.ok();
         pixl_core::io::read_rgb(&out).unwrap()
     };
     let f32_run = relight("f32.exr", &["--json"]);
     let int8_run = relight("int8.exr", &["--int8", "--json"]);
     // The plan counts the 8-bit copies beside the f32 weights: about a quarter of the quantized
     // layers' f32 bytes, so more than nothing and less than a third of all the weights' bytes.
-    let planned = |run: &(std::process::Output, std::path::PathBuf)| {
-        let v: serde_json::Value = serde_json::from_slice(&run.0.stdout).expect("--json output");
-        v["planned_network_bytes"].as_u64().expect("planned_network_bytes")
+    let planned = |run: &(common::Run, PathBuf)| {
+        run.0.json()["planned_network_bytes"]
+            .as_u64()
+            .expect("planned_network_bytes")
     };
     let extra = planned(&int8_run) as i64 - planned(&f32_run) as i64;
     let weight_bytes = 4 * pixl_model::Config::tiny().param_count() as i64;
@@ -407,6 +289,6 @@ fn int8_relights_close_to_f32_and_refuses_bf16() {
         assert_eq!(mse, 0.0);
     }
     let (refused, _) = relight("x.exr", &["--int8", "--dtype", "bf16"]);
-    assert!(!refused.status.success());
-    assert!(String::from_utf8_lossy(&refused.stderr).contains("--int8"));
+    assert!(!refused.success());
+    assert!(refused.stderr.contains("--int8"));
 }

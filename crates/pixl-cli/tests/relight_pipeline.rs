@@ -2,55 +2,38 @@
 //! photos, through the real binary — the relit image has the photo's size, `--keep` holds every
 //! intermediate, lights given every way land in the kept scene, fresh weights give the photo back
 //! exactly through the whole chain, and bad requests fail before any work.
+mod common;
+use common::{pixl_q, s, tiny_weights, write_depth, write_file, write_image};
 use pixl_core::Image;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
-fn pixl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pixl"))
-        .args(args)
-        .arg("--quiet")
-        .output()
-        .expect("run pixl")
-}
-
+/// Runs `pixl args --quiet`, expecting success; returns stdout.
 fn ok(args: &[&str]) -> String {
-    let o = pixl(args);
-    assert!(
-        o.status.success(),
-        "pixl {args:?} failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).to_string()
+    pixl_q(args).ok().stdout
 }
 
+/// `pixl relight PHOTO --depth DEPTH -o OUT` then `flags` (the one-command form).
+fn relight_args<'a>(photo: &'a Path, depth: &'a Path, out: &'a Path, flags: &[&'a str]) -> Vec<&'a str> {
+    [&["relight", s(photo), "--depth", s(depth), "-o", s(out)][..], flags].concat()
+}
+
+/// Runs `pixl args --quiet`, expecting exit 1; returns stderr.
 fn fails(args: &[&str]) -> String {
-    let o = pixl(args);
-    assert_eq!(
-        o.status.code(),
-        Some(1),
-        "pixl {args:?} should fail: {}",
-        String::from_utf8_lossy(&o.stdout)
-    );
-    String::from_utf8_lossy(&o.stderr).to_string()
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
+    let o = pixl_q(args);
+    assert_eq!(o.code(), Some(1), "pixl {args:?} should fail: {}", o.stdout);
+    o.stderr
 }
 
 /// A `w × h` photo (a gradient with some texture) and its depth: a wall 3 m away tilted so the
 /// right side is farther, in metres (EXR, one channel).
 fn photo_and_depth(dir: &Path, w: usize, h: usize) -> (PathBuf, PathBuf) {
-    let photo = dir.join("photo.png");
     let img = Image::from_fn(w, h, 3, |x, y, c| {
         (0.2 + 0.5 * x as f32 / w as f32 + 0.1 * c as f32 + 0.05 * ((x / 3 + y / 3) % 2) as f32).min(1.0)
     });
-    pixl_core::io::write_image(&photo, &img).unwrap();
-    let depth = dir.join("depth.exr");
-    let d = Image::from_fn(w, h, 1, |x, _, _| 3.0 + x as f32 / w as f32);
-    pixl_core::io::write_image(&depth, &d).unwrap();
-    (photo, depth)
+    (
+        write_image(&dir.join("photo.png"), &img),
+        write_depth(&dir.join("depth.exr"), w, h, |x, _| 3.0 + x as f32 / w as f32),
+    )
 }
 
 /// No patch grid: a flat-colour photo of a wall relit with the bundled weights (patch size 8)
@@ -59,16 +42,15 @@ fn photo_and_depth(dir: &Path, w: usize, h: usize) -> (PathBuf, PathBuf) {
 /// written, at 16 spp in a release build).
 #[test]
 fn bundled_weights_print_no_patch_grid_on_a_flat_photo() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (w, h) = (128, 96);
-    let photo = dir.path().join("flat.png");
-    pixl_core::io::write_image(&photo, &Image::from_fn(w, h, 3, |_, _, c| [0.55, 0.45, 0.35][c])).unwrap();
-    let depth = dir.path().join("depth.exr");
-    pixl_core::io::write_image(
-        &depth,
-        &Image::from_fn(w, h, 1, |x, _, _| 2.5 + 0.5 * x as f32 / w as f32),
-    )
-    .unwrap();
+    let photo = write_image(
+        &dir.path().join("flat.png"),
+        &Image::from_fn(w, h, 3, |_, _, c| [0.55, 0.45, 0.35][c]),
+    );
+    let depth = write_depth(&dir.path().join("depth.exr"), w, h, |x, _| {
+        2.5 + 0.5 * x as f32 / w as f32
+    });
     for preset in [
         "cool-side-flash",
         "warm-overhead-flash",
@@ -77,18 +59,7 @@ fn bundled_weights_print_no_patch_grid_on_a_flat_photo() {
         "warm-interior-sun",
     ] {
         let out = dir.path().join(format!("{preset}.png"));
-        ok(&[
-            "relight",
-            s(&photo),
-            "--depth",
-            s(&depth),
-            "--preset",
-            preset,
-            "--spp",
-            "4",
-            "-o",
-            s(&out),
-        ]);
+        ok(&relight_args(&photo, &depth, &out, &["--preset", preset, "--spp", "4"]));
         let relit = pixl_core::io::read_rgb(&out).unwrap();
         let grid = pixl_eval::patch_grid_amplitude(&relit, 8).unwrap();
         assert!(grid < 1.0 / 255.0, "{preset}: patch-grid RMS {:.2}/255", grid * 255.0);
@@ -97,26 +68,26 @@ fn bundled_weights_print_no_patch_grid_on_a_flat_photo() {
 
 #[test]
 fn one_command_with_depth_and_keep_writes_the_relit_photo_and_every_intermediate() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (photo, depth) = photo_and_depth(dir.path(), 40, 30);
     let out = dir.path().join("relit.png");
     let keep = dir.path().join("steps");
-    let json = ok(&[
-        "relight",
-        s(&photo),
-        "--depth",
-        s(&depth),
-        "--preset",
-        "warm-overhead-flash",
-        "--spp",
-        "4",
-        "-o",
-        s(&out),
-        "--keep",
-        s(&keep),
-        "--json",
-    ]);
-    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let v = pixl_q(&relight_args(
+        &photo,
+        &depth,
+        &out,
+        &[
+            "--preset",
+            "warm-overhead-flash",
+            "--spp",
+            "4",
+            "--keep",
+            s(&keep),
+            "--json",
+        ],
+    ))
+    .ok()
+    .json();
     assert_eq!(v["weights"].as_str(), Some("bundled pixl-tiny-synth.safetensors"));
     let relit = pixl_core::io::read_rgb(&out).unwrap();
     assert_eq!((relit.width, relit.height), (40, 30));
@@ -148,17 +119,12 @@ fn one_command_with_depth_and_keep_writes_the_relit_photo_and_every_intermediate
 /// size. With fresh weights (g = b = 0) the output is the photo, exactly, through the whole chain.
 #[test]
 fn fresh_weights_through_the_whole_chain_return_the_photo_at_full_size() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (photo, depth) = photo_and_depth(dir.path(), 90, 60);
-    let weights = dir.path().join("w.safetensors");
-    ok(&["model", "init", "--config", "tiny", "--seed", "1", "-o", s(&weights)]);
+    let weights = tiny_weights(&dir.path().join("w.safetensors"), 1);
     let out = dir.path().join("relit.png");
     let keep = dir.path().join("k");
-    let json = ok(&[
-        "relight",
-        s(&photo),
-        "--depth",
-        s(&depth),
+    let flags = [
         "--preset",
         "cool-side-flash",
         "--spp",
@@ -167,13 +133,11 @@ fn fresh_weights_through_the_whole_chain_return_the_photo_at_full_size() {
         "32",
         "--weights",
         s(&weights),
-        "-o",
-        s(&out),
         "--keep",
         s(&keep),
         "--json",
-    ]);
-    let v: serde_json::Value = serde_json::from_str(&json).unwrap();
+    ];
+    let v = pixl_q(&relight_args(&photo, &depth, &out, &flags)).ok().json();
     assert_eq!(
         (v["working_width"].as_u64(), v["working_height"].as_u64()),
         (Some(32), Some(21))
@@ -197,34 +161,31 @@ fn fresh_weights_through_the_whole_chain_return_the_photo_at_full_size() {
 /// Lights from `--light` (the flags of `pixl light add`) and `--scene FILE` add up with a preset.
 #[test]
 fn lights_from_flags_and_a_file_land_in_the_scene() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (photo, depth) = photo_and_depth(dir.path(), 32, 24);
-    let lights = dir.path().join("lights.toml");
-    std::fs::write(
-        &lights,
+    let lights = write_file(
+        &dir.path().join("lights.toml"),
         "[[lights]]\ntype = \"point\"\nname = \"mine\"\nposition = [0.0, 1.0, -1.0]\npower = 50.0\n",
-    )
-    .unwrap();
+    );
     let out = dir.path().join("relit.exr");
     let keep = dir.path().join("k");
-    ok(&[
-        "relight",
-        s(&photo),
-        "--depth",
-        s(&depth),
-        "--spp",
-        "2",
-        "-o",
-        s(&out),
-        "--keep",
-        s(&keep),
-        "--light",
-        "--type spot --from left --power 300 --name side",
-        "--light",
-        "--at-pixel 16,12 --offset 0.5",
-        "--scene",
-        s(&lights),
-    ]);
+    ok(&relight_args(
+        &photo,
+        &depth,
+        &out,
+        &[
+            "--spp",
+            "2",
+            "--keep",
+            s(&keep),
+            "--light",
+            "--type spot --from left --power 300 --name side",
+            "--light",
+            "--at-pixel 16,12 --offset 0.5",
+            "--scene",
+            s(&lights),
+        ],
+    ));
     let relit = pixl_core::io::read_rgb(&out).unwrap();
     assert_eq!((relit.width, relit.height), (32, 24));
     let scene = pixl_render::Scene::load(&keep.join("scene/scene.toml")).unwrap();
@@ -258,31 +219,17 @@ fn lights_from_flags_and_a_file_land_in_the_scene() {
 /// Bad requests fail before any work: nothing is written, `--keep` is not created.
 #[test]
 fn bad_requests_fail_before_any_work() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let (photo, depth) = photo_and_depth(dir.path(), 16, 12);
     let out = dir.path().join("relit.png");
     let keep = dir.path().join("k");
-    let base = |extra: &[&str]| -> Vec<String> {
-        let mut v: Vec<String> = [
-            "relight",
-            s(&photo),
-            "--depth",
-            s(&depth),
-            "-o",
-            s(&out),
-            "--keep",
-            s(&keep),
-        ]
-        .iter()
-        .map(|x| x.to_string())
-        .collect();
-        v.extend(extra.iter().map(|x| x.to_string()));
-        v
-    };
     let run = |extra: &[&str]| {
-        let args = base(extra);
-        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
-        fails(&refs)
+        fails(&relight_args(
+            &photo,
+            &depth,
+            &out,
+            &[&["--keep", s(&keep)][..], extra].concat(),
+        ))
     };
     let err = run(&[]);
     assert!(err.contains("--preset") && err.contains("--light"), "{err}");
@@ -292,12 +239,10 @@ fn bad_requests_fail_before_any_work() {
     assert!(err.contains("--light") && err.contains("--colour"), "{err}");
     let err = run(&["--light", "--color 1,0"]);
     assert!(err.contains("expected 3 values r,g,b"), "{err}");
-    let bad = dir.path().join("bad.toml");
-    std::fs::write(
-        &bad,
+    let bad = write_file(
+        &dir.path().join("bad.toml"),
         "[[lights]]\ntype = \"point\"\nposition = [0, 1, 0]\npower = -5.0\n",
-    )
-    .unwrap();
+    );
     let err = run(&["--scene", s(&bad)]);
     assert!(err.contains("bad.toml") && err.contains("power"), "{err}");
     assert!(!out.exists() && !keep.exists());

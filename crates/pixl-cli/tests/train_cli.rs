@@ -1,16 +1,10 @@
 //! `pixl synth` and `pixl train` end to end on the real binary: a tiny synthetic set, a few
 //! training steps (L1 only), resume, and the refusal to start without VGG weights.
-use std::path::Path;
-use std::process::{Command, Output};
+mod common;
+use common::{pixl, s, synth_args, write_file, Run};
+use std::path::{Path, PathBuf};
 
-fn pixl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_pixl"))
-        .args(args)
-        .output()
-        .expect("run pixl")
-}
-
-fn config(dir: &Path, steps: u64, perceptual: f64) -> std::path::PathBuf {
+fn config(dir: &Path, steps: u64, perceptual: f64) -> PathBuf {
     let text = format!(
         "[model]\npreset = \"tiny\"\n[data]\ndataset = \"synth:{data}\"\nsplit = \"train\"\n[data.sampler]\nlong_side = 32\n\
          [optim]\nbatch_size = 1\n[optim.schedule]\npeak_lr = 1e-3\nwarmup_steps = 1\ntotal_steps = 10\n\
@@ -18,32 +12,31 @@ fn config(dir: &Path, steps: u64, perceptual: f64) -> std::path::PathBuf {
         data = dir.join("synth").display(),
         out = dir.join("run").display()
     );
-    let p = dir.join(format!("train-{steps}-{perceptual}.toml"));
-    std::fs::write(&p, text).unwrap();
-    p
+    write_file(&dir.join(format!("train-{steps}-{perceptual}.toml")), text)
+}
+
+/// `pixl -q train --config CONFIG` then `extra`.
+fn train(config: &Path, extra: &[&str]) -> Run {
+    pixl(&[&["-q", "train", "--config", s(config)][..], extra].concat())
+}
+
+/// `pixl -q eval --dataset synth:ROOT --runs 0 --out OUT` then `extra`.
+fn eval_synth(root: &Path, out: &Path, extra: &[&str]) -> Run {
+    let data = format!("synth:{}", root.display());
+    pixl(
+        &[
+            &["-q", "eval", "--dataset", &data, "--runs", "0", "--out", s(out)][..],
+            extra,
+        ]
+        .concat(),
+    )
 }
 
 #[test]
 fn synth_then_train_then_resume() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let synth = dir.path().join("synth");
-    let out = pixl(&[
-        "-q",
-        "synth",
-        "--scenes",
-        "2",
-        "--lights",
-        "2",
-        "--size",
-        "32",
-        "--spp",
-        "2",
-        "--test-every",
-        "2",
-        "-o",
-        synth.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    pixl(&synth_args(s(&synth), "32", "2", &["-q"])).ok();
     let manifest: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(synth.join("scenes.json")).unwrap()).unwrap();
     assert_eq!(manifest["scenes"].as_array().unwrap().len(), 2);
@@ -59,23 +52,15 @@ fn synth_then_train_then_resume() {
     let ct = pixl_intrinsics::ct::read_ct(&synth.join("scene0000/light_0.intrinsics.exr")).unwrap();
     assert_eq!((ct.width(), ct.height()), (32, 32));
 
-    let out = pixl(&["-q", "train", "--config", config(dir.path(), 2, 0.0).to_str().unwrap()]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    train(&config(dir.path(), 2, 0.0), &[]).ok();
     let run = dir.path().join("run");
     assert!(run.join("model.safetensors").is_file() && run.join("train-state.safetensors").is_file());
     assert!(run.join("samples/step_0000002.png").is_file());
     // a second fresh start into the same directory is refused; --resume continues
-    let again = pixl(&["-q", "train", "--config", config(dir.path(), 4, 0.0).to_str().unwrap()]);
-    assert!(!again.status.success());
-    assert!(String::from_utf8_lossy(&again.stderr).contains("--resume"));
-    let resumed = pixl(&[
-        "-q",
-        "train",
-        "--resume",
-        "--config",
-        config(dir.path(), 4, 0.0).to_str().unwrap(),
-    ]);
-    assert!(resumed.status.success(), "{}", String::from_utf8_lossy(&resumed.stderr));
+    let again = train(&config(dir.path(), 4, 0.0), &[]);
+    assert!(!again.success());
+    assert!(again.stderr.contains("--resume"));
+    train(&config(dir.path(), 4, 0.0), &["--resume"]).ok();
     let log = std::fs::read_to_string(run.join("log.jsonl")).unwrap();
     let steps: Vec<u64> = log
         .lines()
@@ -86,11 +71,8 @@ fn synth_then_train_then_resume() {
     let changed = std::fs::read_to_string(config(dir.path(), 5, 0.0))
         .unwrap()
         .replace("peak_lr = 1e-3", "peak_lr = 5e-4");
-    let changed_path = dir.path().join("changed.toml");
-    std::fs::write(&changed_path, changed).unwrap();
-    let warned = pixl(&["train", "--resume", "--config", changed_path.to_str().unwrap()]);
-    assert!(warned.status.success(), "{}", String::from_utf8_lossy(&warned.stderr));
-    let err = String::from_utf8_lossy(&warned.stderr);
+    let changed_path = write_file(&dir.path().join("changed.toml"), changed);
+    let err = pixl(&["train", "--resume", "--config", s(&changed_path)]).ok().stderr;
     assert!(
         err.contains("no longer bit-exact") && err.contains("optim.schedule.peak_lr: 0.001 → 0.0005"),
         "{err}"
@@ -105,10 +87,10 @@ fn synth_then_train_then_resume() {
 
 #[test]
 fn perceptual_loss_without_vgg_refuses_to_start() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = pixl(&["-q", "train", "--config", config(dir.path(), 2, 0.2).to_str().unwrap()]);
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
+    let dir = common::tempdir();
+    let out = train(&config(dir.path(), 2, 0.2), &[]);
+    assert!(!out.success());
+    let err = &out.stderr;
     assert!(err.contains("--perceptual-weight 0") && err.contains("vgg"), "{err}");
 }
 
@@ -117,32 +99,10 @@ fn perceptual_loss_without_vgg_refuses_to_start() {
 /// DiffCol), and `pixl eval --ct coarse` scores with them — or says how to make them.
 #[test]
 fn synth_coarse_then_eval_with_coarse_intrinsics() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let synth = dir.path().join("synth");
-    let args = |coarse: bool, out: &Path| -> Vec<String> {
-        let mut v: Vec<String> = [
-            "-q", "synth", "--scenes", "2", "--lights", "2", "--size", "32", "--spp", "4",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        v.extend([
-            "--test-every".into(),
-            "2".into(),
-            "-o".into(),
-            out.display().to_string(),
-        ]);
-        if coarse {
-            v.push("--coarse".into());
-        }
-        v
-    };
-    let run = |a: Vec<String>| {
-        let a: Vec<&str> = a.iter().map(String::as_str).collect();
-        pixl(&a)
-    };
-    let out = run(args(true, &synth));
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let make = |out: &Path, extra: &[&str]| pixl(&synth_args(s(out), "32", "4", &[&["-q"][..], extra].concat()));
+    make(&synth, &["--coarse"]).ok();
     // Pairs 0 → 1 and 1 → 0 of both scenes (scene0001 is the test scene) and each source under
     // its own lighting (for the light-response score), nothing else.
     for scene in ["scene0000", "scene0001"] {
@@ -172,28 +132,14 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
     assert!(a != b, "the coarse C_T is the exact one: nothing was reconstructed");
 
     let eval = |ct: &str, root: &Path| {
-        pixl(&[
-            "-q",
-            "eval",
-            "--dataset",
-            &format!("synth:{}", root.display()),
-            "--baselines",
-            "compose,identity",
-            "--runs",
-            "0",
-            "--json",
-            "--ct",
-            ct,
-            "--out",
-            dir.path().join(format!("eval-{ct}")).to_str().unwrap(),
-        ])
+        eval_synth(
+            root,
+            &dir.path().join(format!("eval-{ct}")),
+            &["--baselines", "compose,identity", "--json", "--ct", ct],
+        )
     };
-    let psnr = |o: &Output| -> f64 {
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        v["methods"][0]["psnr"].as_f64().unwrap()
-    };
-    let (e_exact, e_coarse) = (eval("exact", &synth), eval("coarse", &synth));
+    let psnr = |o: &Run| -> f64 { o.json()["methods"][0]["psnr"].as_f64().unwrap() };
+    let (e_exact, e_coarse) = (eval("exact", &synth).ok(), eval("coarse", &synth).ok());
     let (p_exact, p_coarse) = (psnr(&e_exact), psnr(&e_coarse));
     assert!(
         p_exact.is_finite() && p_coarse.is_finite() && p_exact != p_coarse,
@@ -201,7 +147,7 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
     );
     // The light-response score comes with both: the identity never responds.
     for o in [&e_exact, &e_coarse] {
-        let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let v = o.json();
         let rows = v["response"].as_array().expect("response rows");
         assert_eq!(rows.len(), 2, "{v}");
         assert_eq!(rows[1]["method"], "Identity (source)");
@@ -211,10 +157,10 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
     }
     // A set made without --coarse: a clear error naming the missing file and the fix.
     let plain = dir.path().join("plain");
-    assert!(run(args(false, &plain)).status.success());
+    assert!(make(&plain, &[]).success());
     let o = eval("coarse", &plain);
-    assert!(!o.status.success());
-    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.success());
+    let err = &o.stderr;
     assert!(
         err.contains("from_light_") && err.contains("pixl synth --coarse"),
         "{err}"
@@ -226,9 +172,9 @@ fn synth_coarse_then_eval_with_coarse_intrinsics() {
 /// is close to 1 — an independent check of the score's plumbing; `--no-response` turns it off.
 #[test]
 fn eval_light_response_of_compose_reinhard_follows_the_renders() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let synth = dir.path().join("synth");
-    let o = pixl(&[
+    pixl(&[
         "-q",
         "synth",
         "--style",
@@ -245,30 +191,16 @@ fn eval_light_response_of_compose_reinhard_follows_the_renders() {
         "1",
         "--coarse",
         "-o",
-        synth.to_str().unwrap(),
-    ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        s(&synth),
+    ])
+    .ok();
     let eval = |extra: &[&str]| {
-        let (data, out) = (format!("synth:{}", synth.display()), dir.path().join("eval"));
-        let mut a = vec![
-            "-q",
-            "eval",
-            "--dataset",
-            &data,
-            "--baselines",
-            "compose-reinhard",
-            "--runs",
-            "0",
-            "--json",
-            "--ct",
-            "coarse",
-            "--out",
-            out.to_str().unwrap(),
-        ];
-        a.extend(extra);
-        let o = pixl(&a);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        serde_json::from_slice::<serde_json::Value>(&o.stdout).unwrap()
+        let flags = [
+            &["--baselines", "compose-reinhard", "--json", "--ct", "coarse"][..],
+            extra,
+        ]
+        .concat();
+        eval_synth(&synth, &dir.path().join("eval"), &flags).ok().json()
     };
     let v = eval(&[]);
     let gain = v["response"][0]["gain"].as_f64().unwrap();
@@ -282,14 +214,8 @@ fn eval_light_response_of_compose_reinhard_follows_the_renders() {
     assert!(off["response"].as_array().is_none_or(|r| r.is_empty()), "{off}");
 }
 
-/// `--coarse-albedo photo` textures each reconstruction with its source image itself (as `pixl
-/// reconstruct` does without `--albedo`) and records that in the manifest; the option needs
-/// `--coarse`.
-#[test]
-fn synth_coarse_albedo_photo_textures_with_the_source_image() {
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("synth");
-    let o = dir.path().display().to_string();
+/// `pixl -q synth` of one scene under two lights, 24 pixels at 2 samples, into `out`, then `extra`.
+fn one_scene(out: &Path, extra: &[&str]) -> Run {
     let base = [
         "-q",
         "synth",
@@ -301,16 +227,22 @@ fn synth_coarse_albedo_photo_textures_with_the_source_image() {
         "24",
         "--spp",
         "2",
-        "--coarse-albedo",
-        "photo",
+        "-o",
+        s(out),
     ];
-    let refused = pixl(&[&base[..], &["-o", &o]].concat());
-    assert!(
-        !refused.status.success(),
-        "--coarse-albedo without --coarse was accepted"
-    );
-    let ok = pixl(&[&base[..], &["--coarse", "-o", out.to_str().unwrap()]].concat());
-    assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
+    pixl(&[&base[..], extra].concat())
+}
+
+/// `--coarse-albedo photo` textures each reconstruction with its source image itself (as `pixl
+/// reconstruct` does without `--albedo`) and records that in the manifest; the option needs
+/// `--coarse`.
+#[test]
+fn synth_coarse_albedo_photo_textures_with_the_source_image() {
+    let dir = common::tempdir();
+    let out = dir.path().join("synth");
+    let refused = one_scene(dir.path(), &["--coarse-albedo", "photo"]);
+    assert!(!refused.success(), "--coarse-albedo without --coarse was accepted");
+    one_scene(&out, &["--coarse-albedo", "photo", "--coarse"]).ok();
     for k in 0..2 {
         let photo = pixl_core::io::read_rgb(&out.join(format!("scene0000/light_{k}.png"))).unwrap();
         let tex = pixl_core::io::read_rgb(&out.join(format!("scene0000/coarse_from_light_{k}/albedo.png"))).unwrap();
@@ -331,23 +263,12 @@ fn synth_coarse_albedo_photo_textures_with_the_source_image() {
     assert_eq!(manifest["coarse_albedo"], "photo");
     // `pixl eval --ct coarse` says which reconstruction the C_T came from.
     let report = dir.path().join("eval");
-    let e = pixl(&[
-        "-q",
-        "eval",
-        "--dataset",
-        &format!("synth:{}", out.display()),
-        "--split",
-        "all",
-        "--baselines",
-        "compose",
-        "--runs",
-        "0",
-        "--ct",
-        "coarse",
-        "--out",
-        report.to_str().unwrap(),
-    ]);
-    assert!(e.status.success(), "{}", String::from_utf8_lossy(&e.stderr));
+    eval_synth(
+        &out,
+        &report,
+        &["--split", "all", "--baselines", "compose", "--ct", "coarse"],
+    )
+    .ok();
     let md = std::fs::read_to_string(report.join("results.md")).unwrap();
     assert!(md.contains("textured with the source image"), "{md}");
 }
@@ -357,27 +278,10 @@ fn synth_coarse_albedo_photo_textures_with_the_source_image() {
 /// (correlated), and recorded in the manifest.
 #[test]
 fn synth_coarse_albedo_estimated_is_diffcol_with_errors() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let run = |albedo: &str| {
         let out = dir.path().join(albedo);
-        let o = pixl(&[
-            "-q",
-            "synth",
-            "--scenes",
-            "1",
-            "--lights",
-            "2",
-            "--size",
-            "24",
-            "--spp",
-            "2",
-            "--coarse",
-            "--coarse-albedo",
-            albedo,
-            "-o",
-            out.to_str().unwrap(),
-        ]);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        one_scene(&out, &["--coarse", "--coarse-albedo", albedo]).ok();
         out
     };
     let (exact, estimated) = (run("diffcol"), run("estimated"));

@@ -2,64 +2,38 @@
 //! for byte, a bf16 round trip that loads, and bad inputs (a missing file, a missing part, an
 //! existing output, the output being a part) failing with a message and exit code 1.
 mod common;
-
+use common::{pixl_in, s};
 use std::path::{Path, PathBuf};
-use std::process::Output;
-
-fn pixl(home: &Path, args: &[&str]) -> (Output, String, String) {
-    common::run(common::pixl(home).args(args))
-}
 
 fn ok(home: &Path, args: &[&str]) -> String {
-    let (o, out, err) = pixl(home, args);
-    assert!(o.status.success(), "pixl {args:?} failed: {err}");
-    out
+    pixl_in(home, args).ok().stdout
 }
 
 /// Expects exit code 1 (an error, not a panic and not a command-line error) and a message
-/// holding every needle.
+/// starting `error: ` holding every needle.
 fn fails(home: &Path, args: &[&str], needles: &[&str]) {
-    let (o, _, err) = pixl(home, args);
-    assert_eq!(o.status.code(), Some(1), "pixl {args:?}: {err}");
-    assert!(!err.contains("panicked"), "pixl {args:?} panicked: {err}");
+    let r = pixl_in(home, args);
+    let err = r.fails(needles);
     assert!(err.starts_with("error: "), "{err}");
-    for n in needles {
-        assert!(err.contains(n), "pixl {args:?}: stderr lacks {n:?}: {err}");
-    }
 }
 
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
+/// `pixl weights split W --max-part-mib MIB -o PARTS` then `extra`, expecting success: stdout.
+fn split(home: &Path, w: &Path, mib: &str, parts: &Path, extra: &[&str]) -> String {
+    let args = ["weights", "split", s(w), "--max-part-mib", mib, "-o", s(parts)];
+    ok(home, &[&args[..], extra].concat())
 }
 
 fn tiny_weights(dir: &Path) -> PathBuf {
-    let w = dir.join("W.safetensors");
-    ok(
-        dir,
-        &["-q", "model", "init", "--config", "tiny", "--seed", "3", "-o", s(&w)],
-    );
-    w
+    common::tiny_weights(&dir.join("W.safetensors"), 3)
 }
 
 #[test]
 fn split_then_join_gives_the_file_back() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let home = dir.path();
     let w = tiny_weights(home);
     let parts = home.join("parts");
-    let out = ok(
-        home,
-        &[
-            "weights",
-            "split",
-            s(&w),
-            "--max-part-mib",
-            "0.5",
-            "-o",
-            s(&parts),
-            "--json",
-        ],
-    );
+    let out = split(home, &w, "0.5", &parts, &["--json"]);
     let v: serde_json::Value = serde_json::from_str(&out).expect("one JSON document on stdout");
     assert_eq!(v["dtype"], "F32");
     let list = v["parts"].as_array().unwrap();
@@ -98,25 +72,11 @@ fn split_then_join_gives_the_file_back() {
 
 #[test]
 fn a_bf16_split_joins_into_loadable_weights() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let home = dir.path();
     let w = tiny_weights(home);
     let parts = home.join("bf16");
-    let out = ok(
-        home,
-        &[
-            "weights",
-            "split",
-            s(&w),
-            "--dtype",
-            "bf16",
-            "--max-part-mib",
-            "0.25",
-            "-o",
-            s(&parts),
-            "--json",
-        ],
-    );
+    let out = split(home, &w, "0.25", &parts, &["--dtype", "bf16", "--json"]);
     let v: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert_eq!(
         (v["source_dtype"].as_str(), v["dtype"].as_str()),
@@ -144,7 +104,7 @@ fn a_bf16_split_joins_into_loadable_weights() {
 
 #[test]
 fn bad_inputs_fail_with_a_message() {
-    let dir = tempfile::tempdir().unwrap();
+    let dir = common::tempdir();
     let home = dir.path();
     let missing = home.join("missing.safetensors");
     let parts = home.join("parts");
@@ -169,19 +129,7 @@ fn bad_inputs_fail_with_a_message() {
         &["weights", "split", s(&w), "--max-part-mib", "0.01", "-o", s(&parts)],
         &["W.safetensors", "tensor `", "over the limit"],
     );
-    ok(
-        home,
-        &[
-            "-q",
-            "weights",
-            "split",
-            s(&w),
-            "--max-part-mib",
-            "0.5",
-            "-o",
-            s(&parts),
-        ],
-    );
+    split(home, &w, "0.5", &parts, &["-q"]);
     fails(
         home,
         &["weights", "split", s(&w), "-o", s(&parts)],
@@ -203,6 +151,6 @@ fn bad_inputs_fail_with_a_message() {
     fails(home, &["weights", "join", s(&p1), "-o", s(&out)], &[s(&p2), "missing"]);
     assert!(!out.exists());
     // no parts at all is a command-line error
-    let (o, _, err) = pixl(home, &["weights", "join", "-o", s(&out)]);
-    assert_eq!(o.status.code(), Some(2), "{err}");
+    let o = pixl_in(home, &["weights", "join", "-o", s(&out)]);
+    assert_eq!(o.code(), Some(2), "{}", o.stderr);
 }
