@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Noise benchmark of the native renderer against Blender Cycles (BENCHMARKS.md, "Native renderer
-# noise vs Cycles"): for the demo scene and the 500 k-triangle depth-mesh scene of `bench_render`,
+# noise vs Blender Cycles"): for the demo scene and the 500 k-triangle depth-mesh scene of `bench_render`,
 # each renderer's own high-spp reference, then renders at a few spp, and per pass the RMSE against
 # the renderer's own reference, the path-tracing time and the error per second 1 / (RMSE² · t).
 #

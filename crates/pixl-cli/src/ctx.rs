@@ -157,3 +157,59 @@ a scene from `pixl reconstruct` has that camera at the origin. Light units are B
 and area power in W, sun strength in W/m^2, colours linear RGB or a temperature in kelvin."
     };
 }
+
+/// The CLI's view of the pipeline's long stages ([`pixl_pipeline::Observer`]): a progress bar
+/// per stage (hidden under `--quiet` or without a terminal, redrawing its elapsed time) and its
+/// notes printed as summary lines ([`Ctx::say`]).
+pub struct Bars<'a> {
+    ctx: &'a Ctx,
+    bars: std::sync::Mutex<Vec<(pixl_pipeline::Stage, ProgressBar)>>,
+}
+
+impl<'a> Bars<'a> {
+    pub fn new(ctx: &'a Ctx) -> Self {
+        Bars {
+            ctx,
+            bars: std::sync::Mutex::new(Vec::new()),
+        }
+    }
+
+    fn with_bar(&self, stage: pixl_pipeline::Stage, f: impl FnOnce(&ProgressBar)) {
+        if let Ok(bars) = self.bars.lock() {
+            if let Some((_, b)) = bars.iter().find(|(s, _)| *s == stage) {
+                f(b);
+            }
+        }
+    }
+}
+
+impl pixl_pipeline::Observer for Bars<'_> {
+    fn begin(&self, stage: pixl_pipeline::Stage, total: u64) {
+        let bar = self.ctx.progress(total.max(1), stage.name());
+        if !bar.is_hidden() {
+            bar.enable_steady_tick(std::time::Duration::from_millis(250));
+        }
+        if let Ok(mut bars) = self.bars.lock() {
+            bars.push((stage, bar));
+        }
+    }
+
+    fn progress(&self, stage: pixl_pipeline::Stage, done: u64, total: u64) {
+        self.with_bar(stage, |b| {
+            b.set_length(total.max(1));
+            b.set_position(done);
+        });
+    }
+
+    fn end(&self, stage: pixl_pipeline::Stage) {
+        if let Ok(mut bars) = self.bars.lock() {
+            if let Some(i) = bars.iter().position(|(s, _)| *s == stage) {
+                bars.remove(i).1.finish_and_clear();
+            }
+        }
+    }
+
+    fn note(&self, line: &str) {
+        self.ctx.say(line);
+    }
+}

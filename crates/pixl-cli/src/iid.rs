@@ -2,7 +2,7 @@
 //! `pixl reconstruct --materials marigold` and `pixl prepare-targets`: the flags ([`IidArgs`]),
 //! loading a checkpoint of the right variant ([`load`]: the wrong variant is one clear error),
 //! the time it will take shown up front, and a progress bar per UNet step and decode ([`run`]).
-use super::models::WeightsArgs;
+use crate::weights::WeightsArgs;
 use crate::Ctx;
 use anyhow::{bail, Context};
 use pixl_core::Image;
@@ -76,7 +76,7 @@ pub fn load(
 ) -> anyhow::Result<(Marigold, Resolved)> {
     let spec = hub::lookup(model_name(variant))?;
     let hub = weights.hub();
-    let resolved = super::models::resolve(&hub, spec, ctx)?;
+    let resolved = crate::weights::resolve(&hub, spec, ctx)?;
     let device = crate::device::parse_device(device)?;
     let m = Marigold::load(&resolved.dir, &device)
         .with_context(|| format!("loading `{}` from {}", spec.name, resolved.dir.display()))?;

@@ -6,10 +6,14 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+mod args;
 mod cmd;
 mod ctx;
 mod device;
+mod estimators;
+mod iid;
 mod report;
+mod weights;
 
 pub use ctx::Ctx;
 

@@ -48,23 +48,14 @@ pub struct Report {
     pub rows: Vec<Row>,
 }
 
+/// 8-bit PNG bytes of `img` (the report's panels; an image that cannot be encoded shows empty).
 fn png_bytes(img: &Image) -> Vec<u8> {
-    use image::ImageEncoder;
-    let bytes: Vec<u8> = img
-        .data
-        .iter()
-        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
-        .collect();
-    let color = match img.channels {
-        1 => image::ExtendedColorType::L8,
-        4 => image::ExtendedColorType::Rgba8,
-        _ => image::ExtendedColorType::Rgb8,
-    };
-    let mut out = Vec::new();
-    // Encoding an in-memory buffer of the right size cannot fail; an empty image yields no bytes.
-    let _ =
-        image::codecs::png::PngEncoder::new(&mut out).write_image(&bytes, img.width as u32, img.height as u32, color);
-    out
+    pixl_core::io::encode_png(
+        img,
+        pixl_core::io::PngDepth::Eight,
+        pixl_core::io::PngCompression::Default,
+    )
+    .unwrap_or_default()
 }
 
 /// Standard base64 (RFC 4648) with padding.

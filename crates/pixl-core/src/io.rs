@@ -10,6 +10,8 @@
 //! - The extension decides the format: [`write_image`] dispatches on it, and [`write_png`] (and
 //!   [`crate::exrio::write_exr_channels`]) refuse a path whose extension is not theirs, so no
 //!   file ever holds bytes of another format than its name says.
+//! - [`encode_png`] gives the bytes of a PNG file in memory (HTML reports, HTTP responses), the
+//!   same samples as [`write_png`], optionally with fast compression ([`PngCompression`]).
 use crate::error::{CoreError, Result};
 use crate::exrio::{read_exr_channels, write_exr_channels, ExrChannels};
 use crate::image::Image;
@@ -303,16 +305,20 @@ fn check_writable(path: &Path, img: &Image) -> Result<()> {
     Ok(())
 }
 
-/// Writes a PNG (values clamped to [0, 1], rounded to nearest). The path must end in `.png`.
-pub fn write_png(path: &Path, img: &Image, depth: PngDepth) -> Result<()> {
-    if extension(path) != "png" {
-        return Err(CoreError::OutputExtension {
-            path: path.to_owned(),
-            expected: ".png".into(),
-        });
-    }
-    check_writable(path, img)?;
-    let (w, h) = (img.width as u32, img.height as u32);
+/// How hard the PNG encoder works on the file's size.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PngCompression {
+    /// The `image` crate's default level and adaptive filtering, as [`write_png`] writes.
+    #[default]
+    Default,
+    /// Fast compression and the `Sub` filter: larger files, encoded several times faster (for
+    /// interactive previews).
+    Fast,
+}
+
+/// The encoder's samples and colour type for `img` at `depth` (1 to 4 channels: gray, gray +
+/// alpha, RGB, RGBA): values clamped to [0, 1] and rounded to nearest, NaN as 0.
+fn png_samples(img: &Image, depth: PngDepth) -> (Vec<u8>, image::ExtendedColorType) {
     let color = match (img.channels, depth) {
         (1, PngDepth::Eight) => image::ExtendedColorType::L8,
         (2, PngDepth::Eight) => image::ExtendedColorType::La8,
@@ -336,15 +342,62 @@ pub fn write_png(path: &Path, img: &Image, depth: PngDepth) -> Result<()> {
             .flat_map(|v| (((if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) }) * 65535.0).round() as u16).to_ne_bytes())
             .collect(),
     };
+    (bytes, color)
+}
+
+/// Encodes `img` as a PNG into `out` (the size and channel count already checked).
+fn encode_png_to(
+    out: impl std::io::Write,
+    img: &Image,
+    depth: PngDepth,
+    compression: PngCompression,
+) -> std::result::Result<(), image::ImageError> {
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+    use image::ImageEncoder;
+    let (bytes, color) = png_samples(img, depth);
+    let (w, h) = (img.width as u32, img.height as u32);
+    match compression {
+        PngCompression::Default => PngEncoder::new(out).write_image(&bytes, w, h, color),
+        PngCompression::Fast => {
+            PngEncoder::new_with_quality(out, CompressionType::Fast, FilterType::Sub).write_image(&bytes, w, h, color)
+        }
+    }
+}
+
+/// Writes a PNG (values clamped to [0, 1], rounded to nearest). The path must end in `.png`.
+pub fn write_png(path: &Path, img: &Image, depth: PngDepth) -> Result<()> {
+    if extension(path) != "png" {
+        return Err(CoreError::OutputExtension {
+            path: path.to_owned(),
+            expected: ".png".into(),
+        });
+    }
+    check_writable(path, img)?;
     atomic_write(path, |file| {
-        use image::ImageEncoder;
-        let enc = image::codecs::png::PngEncoder::new(std::io::BufWriter::new(file));
-        enc.write_image(&bytes, w, h, color).map_err(|e| CoreError::Encode {
+        let out = std::io::BufWriter::new(file);
+        encode_png_to(out, img, depth, PngCompression::Default).map_err(|e| CoreError::Encode {
             path: path.to_owned(),
             format: "PNG",
             reason: e.to_string(),
         })
     })
+}
+
+/// The bytes of the PNG file [`write_png`] would write (with [`PngCompression::Default`]), in
+/// memory: for embedding in a page or sending over HTTP. 1 to 4 channels (gray, gray + alpha,
+/// RGB, RGBA), values clamped to [0, 1] and rounded to nearest, NaN as 0. Errors on an empty
+/// image or another channel count.
+pub fn encode_png(img: &Image, depth: PngDepth, compression: PngCompression) -> Result<Vec<u8>> {
+    if img.width == 0 || img.height == 0 || !(1..=4).contains(&img.channels) {
+        return Err(CoreError::Invalid(format!(
+            "cannot encode a {}x{} image of {} channels as PNG (1 to 4 channels, not empty)",
+            img.width, img.height, img.channels
+        )));
+    }
+    let mut out = Vec::new();
+    encode_png_to(&mut out, img, depth, compression)
+        .map_err(|e| CoreError::Invalid(format!("encoding a PNG in memory: {e}")))?;
+    Ok(out)
 }
 
 fn write_jpeg(path: &Path, img: &Image) -> Result<()> {
@@ -452,6 +505,27 @@ mod tests {
         let p = dir.path().join("hdr.exr");
         write_image(&p, &hdr).unwrap();
         assert_eq!(read_rgb(&p).unwrap(), hdr);
+    }
+
+    /// In memory: the bytes `write_png` writes, for 1 to 4 channels and both depths; fast
+    /// compression decodes to the same pixels; empty images and 5 channels are refused.
+    #[test]
+    fn png_in_memory_is_the_file_png() {
+        let dir = tempfile::tempdir().unwrap();
+        for ch in 1..=4 {
+            let img = Image::from_fn(9, 6, ch, |x, y, c| (x * 31 + y * 17 + c * 5) as f32 / 300.0 - 0.1);
+            for depth in [PngDepth::Eight, PngDepth::Sixteen] {
+                let p = dir.path().join("a.png");
+                write_png(&p, &img, depth).unwrap();
+                let bytes = encode_png(&img, depth, PngCompression::Default).unwrap();
+                assert_eq!(bytes, std::fs::read(&p).unwrap(), "{ch} channels, {depth:?}");
+                let fast = encode_png(&img, depth, PngCompression::Fast).unwrap();
+                let decode = |b: &[u8]| image::load_from_memory(b).unwrap().into_rgba16().into_raw();
+                assert_eq!(decode(&fast), decode(&bytes), "{ch} channels, {depth:?}");
+            }
+        }
+        assert!(encode_png(&Image::new(0, 3, 3), PngDepth::Eight, PngCompression::Default).is_err());
+        assert!(encode_png(&Image::new(2, 3, 5), PngDepth::Eight, PngCompression::Fast).is_err());
     }
 
     #[test]

@@ -9,6 +9,8 @@
 //! - [`output`]: checks of output files and folders made before any work (format from the
 //!   extension, folder writable, output ≠ input, `--force` for a non-empty folder), and the
 //!   registry of live temporary paths that a signal handler removes on interruption.
+//! - [`resample`]: resizing an [`Image`]: a tent filter with optional crop (training crops) and
+//!   the exact area average (the network's working size).
 //! - [`passes`]: the Cycles render-pass names, short (`DiffDir`) and long (`Diffuse Direct`),
 //!   shared by the renderer (writer) and the compositor (reader).
 //! - [`rng`]: a small, serialisable, splittable PRNG so every random draw in the project is
@@ -19,6 +21,7 @@ pub mod image;
 pub mod io;
 pub mod output;
 pub mod passes;
+pub mod resample;
 pub mod rng;
 
 pub use error::{CoreError, Result};

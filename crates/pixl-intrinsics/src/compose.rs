@@ -371,6 +371,13 @@ fn non_finite(data: &[f32]) -> (usize, Option<usize>) {
         .reduce(|| (0, None), |a, b| (a.0 + b.0, a.1.or(b.1)))
 }
 
+/// C_T of a native render: its passes (Cycles names, `pixl_render::Film::to_exr_channels`)
+/// composed as [`compose`] does. The one way a render becomes C_T in the pipeline, the studio,
+/// `pixl demo` and `pixl synth`.
+pub fn compose_film(film: &pixl_render::Film, opts: &ComposeOptions) -> Result<Composed> {
+    compose(&PassSet::from_exr_channels(&film.to_exr_channels(), None)?, opts)
+}
+
 /// Composes C_T from a pass set (see the module docs for the exact formulas).
 pub fn compose(set: &PassSet, opts: &ComposeOptions) -> Result<Composed> {
     let missing_required: Vec<&str> = REQUIRED_FOR_COMPOSE

@@ -6,7 +6,8 @@
 //! - [`working_size`]: the photo's size scaled so its long side is at most `max_side`
 //!   (aspect kept, rounded to whole pixels; unchanged if already small enough).
 //! - [`area_resize_to_chw`]: box-filter (area-average) resampling of an interleaved image into
-//!   planar `C × oh × ow` — how the photo and a full-size `C_T` reach the working size.
+//!   planar `C × oh × ow` ([`pixl_core::resample`]) — how the photo and a full-size `C_T` reach
+//!   the working size.
 //! - [`apply_gain_bias`]: the gain and bias maps `(3, gh, gw)` bilinearly resized (half-pixel
 //!   centres, `align_corners = false`, as [`pixl_nn::ops::resize_bilinear`]) and applied to the
 //!   photo in place, in f32, clipped to `[0, 1]`. With `g ≡ b ≡ 0` the photo is unchanged bit for bit.
@@ -54,66 +55,11 @@ pub fn working_size(width: usize, height: usize, max_side: usize) -> (usize, usi
     (side(width), side(height))
 }
 
-/// Box-filter weights from `n_in` samples to `n_out`: for each output `o`, the input samples
-/// overlapping `[o·n_in/n_out, (o+1)·n_in/n_out)` and their overlap fractions (summing to 1).
-fn area_weights(n_in: usize, n_out: usize) -> Vec<Vec<(usize, f32)>> {
-    let scale = n_in as f64 / n_out as f64;
-    (0..n_out)
-        .map(|o| {
-            let (a, b) = (o as f64 * scale, (o + 1) as f64 * scale);
-            let first = (a.floor() as usize).min(n_in - 1);
-            let last = ((b.ceil() as usize).max(first + 1)).min(n_in);
-            (first..last)
-                .filter_map(|i| {
-                    let overlap = b.min(i as f64 + 1.0) - a.max(i as f64);
-                    (overlap > 0.0).then_some((i, (overlap / (b - a)) as f32))
-                })
-                .collect()
-        })
-        .collect()
-}
-
 /// Area-average resampling of `img` (interleaved, any channel count) to `ow × oh`, returned
-/// planar (`channels × oh × ow`, the layout tensors use). Each output pixel is the mean of the
-/// input over its footprint (fractional pixels weighted by overlap); at the same size it is the
-/// planar copy of the input.
+/// planar (`channels × oh × ow`, the layout tensors use): [`pixl_core::resample::area_resize_to_chw`]
+/// with this module's error.
 pub fn area_resize_to_chw(img: &Image, ow: usize, oh: usize) -> Result<Vec<f32>> {
-    let (w, h, ch) = (img.width, img.height, img.channels);
-    if w == 0 || h == 0 || ow == 0 || oh == 0 || img.data.len() != w * h * ch {
-        return Err(FullResError::Size(format!(
-            "area resize from {w}x{h}x{ch} ({} samples) to {ow}x{oh}: sizes must be positive and consistent",
-            img.data.len()
-        )));
-    }
-    if (ow, oh) == (w, h) {
-        return Ok(img.to_chw());
-    }
-    let wx = area_weights(w, ow);
-    let wy = area_weights(h, oh);
-    // Horizontal pass into planar rows `(c, y, ox)`, then vertical.
-    let mut rows = vec![0f32; ch * h * ow];
-    for y in 0..h {
-        let line = &img.data[y * w * ch..(y + 1) * w * ch];
-        for (ox, taps) in wx.iter().enumerate() {
-            for c in 0..ch {
-                let s: f32 = taps.iter().map(|&(x, t)| t * line[x * ch + c]).sum();
-                rows[(c * h + y) * ow + ox] = s;
-            }
-        }
-    }
-    let mut out = vec![0f32; ch * oh * ow];
-    for c in 0..ch {
-        for (oy, taps) in wy.iter().enumerate() {
-            let dst = &mut out[(c * oh + oy) * ow..(c * oh + oy + 1) * ow];
-            for &(y, t) in taps {
-                let src = &rows[(c * h + y) * ow..(c * h + y + 1) * ow];
-                for (d, s) in dst.iter_mut().zip(src) {
-                    *d += t * s;
-                }
-            }
-        }
-    }
-    Ok(out)
+    pixl_core::resample::area_resize_to_chw(img, ow, oh).map_err(|e| FullResError::Size(e.to_string()))
 }
 
 /// One output coordinate's bilinear taps: `v = a·(1 − f) + b·f` with `a` at `i0`, `b` at `i1`.
@@ -465,30 +411,31 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
         .unwrap_or(0)
         .max(tiles3(oc[3], oc[3], n3));
     let head_layers = kept_blocks + readouts + project.max(resize0 + cs * 16 * fe * n + rn_tiles) + layers;
-    // refinenet1: path, its residual units, the ×2 resize and the 1×1 out_conv. f32: a unit is
-    // its input and two conv outputs (ReLUs and skip fused), the out_conv the resized map and
-    // its output (the matrix product added to the bias in place); bf16: 7 maps per unit, and the
-    // out_conv's input copy, matmul result, output and bias.
+    // refinenet1: lateral 0 (the coarser laterals and paths are dropped as they are read), the
+    // path, its residual units, the ×2 resize and the 1×1 out_conv. f32: a unit is its input and
+    // two conv outputs (ReLUs and skip fused), the out_conv the resized map and its output (the
+    // matrix product added to the bias in place); bf16: 7 maps per unit, and the out_conv's input
+    // copy, matmul result, output and bias.
     let (rcu_maps, out_conv_maps) = if fast { (3, 2) } else { (7, 4) };
     let rcu = |a: u64| cs * rcu_maps * fe * a;
     let refine1 = kept_blocks
         + readouts
-        + layers
+        + cs * 16 * fe * n
         + cs * 16 * fe * n * 3
         + (rcu(16 * n) + tiles3(fe, fe, 16 * n)).max(cs * fe * 64 * n * out_conv_maps);
     // output_conv1: refinenet1's output and the conv's (f/2 channels), with the conv's scratch.
-    let out1 = kept_blocks + readouts + layers + cs * (fe + fe / 2) * 64 * n + tiles3(fe, fe / 2, 64 * n);
-    let tail = kept_blocks
-        + readouts
-        + layers
-        + cs * (fe * 64 * n + fe / 2 * 64 * n)
-        + if fast {
-            // output_conv2 writes its result straight from the resized map, ReLU fused.
-            cs * (fe / 2 * px + hid * px)
-        } else {
-            cs * (fe / 2 * px + (fe / 2 * px + hid * px).max(2 * hid * px))
-        }
-        + tiles3(fe / 2, hid, px);
+    let out1 = kept_blocks + readouts + cs * (fe + fe / 2) * 64 * n + tiles3(fe, fe / 2, 64 * n);
+    // The resize of output_conv1's map to full size (refinenet1's output dropped), then
+    // output_conv2 on the resized map alone. The conv's scratch is this stage's per-call kernel
+    // buffers, already allowed in `base`: only what exceeds that allowance is added.
+    let resize_full = cs * (fe / 2 * 64 * n + fe / 2 * px);
+    let conv2 = if fast {
+        // output_conv2 writes its result straight from the resized map, ReLU fused.
+        cs * (fe / 2 * px + hid * px)
+    } else {
+        cs * (fe / 2 * px + (fe / 2 * px + hid * px).max(2 * hid * px))
+    } + tiles3(fe / 2, hid, px).saturating_sub(threads * KERNEL_SCRATCH_PER_THREAD);
+    let tail = kept_blocks + readouts + resize_full.max(conv2);
     // Modulation: F, then the six maps (f32: the matrix product added to the bias in place;
     // bf16: F's copy for candle's 1×1 conv, result, output, bias), then the cropped gain and bias
     // as f32 vectors.
@@ -531,25 +478,5 @@ mod tests {
         assert_eq!(working_size(1025, 3, 1024), (1024, 3));
         assert_eq!(working_size(5000, 1, 100), (100, 1));
         assert_eq!(working_size(7, 5, 0), (1, 1));
-    }
-
-    #[test]
-    fn area_weights_sum_to_one_and_cover_the_input_once() {
-        for (n_in, n_out) in [(10, 3), (3, 10), (7, 7), (4000, 1024), (1, 5), (5, 1)] {
-            let w = area_weights(n_in, n_out);
-            let mut cover = vec![0f64; n_in];
-            for taps in &w {
-                let s: f64 = taps.iter().map(|t| t.1 as f64).sum();
-                assert!((s - 1.0).abs() < 1e-5, "{n_in}->{n_out}: {s}");
-                for &(i, t) in taps {
-                    cover[i] += t as f64 * n_in as f64 / n_out as f64;
-                }
-            }
-            // Every input sample contributes its whole area exactly once.
-            assert!(
-                cover.iter().all(|c| (c - 1.0).abs() < 1e-4),
-                "{n_in}->{n_out}: {cover:?}"
-            );
-        }
     }
 }

@@ -152,3 +152,22 @@ pub fn conv2d(cin: usize, cout: usize, k: usize, cfg: Conv2dConfig, vb: VarBuild
 pub fn conv2d_no_bias(cin: usize, cout: usize, k: usize, cfg: Conv2dConfig, vb: VarBuilder) -> Result<Conv> {
     Ok(Conv(candle_nn::conv2d_no_bias(cin, cout, k, cfg, vb)?))
 }
+
+impl pixl_nn::dpt::DptConv for Conv {
+    fn load(spec: pixl_nn::dpt::ConvSpec, vb: VarBuilder) -> Result<Self> {
+        let cfg = Conv2dConfig {
+            padding: spec.k / 2,
+            stride: spec.stride,
+            ..Default::default()
+        };
+        if spec.bias {
+            conv2d(spec.cin, spec.cout, spec.k, cfg, vb)
+        } else {
+            conv2d_no_bias(spec.cin, spec.cout, spec.k, cfg, vb)
+        }
+    }
+
+    fn forward_fused(&self, xs: &Tensor, input_relu: bool, residual: Option<&Tensor>, act: Act) -> Result<Tensor> {
+        Conv::forward_fused(self, xs, input_relu, residual, act)
+    }
+}

@@ -13,7 +13,7 @@
 //! - the last readout must be the last block (a block after it would be dead weight);
 //!   [`Config::validate`] checks it.
 use crate::config::Config;
-use crate::vit::{tokens_to_grid, Block, PatchRope};
+use crate::vit::{block_config, tokens_to_grid, Block, PatchRope};
 use candle_core::{Device, Module, Result, Tensor};
 use candle_nn::VarBuilder;
 use pixl_nn::{LayerNorm, Rope2d};
@@ -42,8 +42,9 @@ impl Trunk {
         let t = &cfg.trunk;
         let init = candle_nn::Init::Randn { mean: 0.0, stdev: 0.02 };
         let registers = vb.get_with_hints((1, t.registers, cfg.dim), "registers", init)?;
+        let block_cfg = block_config(cfg, t.heads, t.mlp_ratio);
         let blocks = (0..t.depth)
-            .map(|i| Block::new(cfg.dim, t.heads, t.mlp_ratio, cfg.norm_eps, vb.pp("blocks").pp(i)))
+            .map(|i| Block::new(&block_cfg, vb.pp("blocks").pp(i)))
             .collect::<Result<Vec<_>>>()?;
         let norm = LayerNorm::new(cfg.dim, cfg.norm_eps, vb.pp("norm"))?;
         Ok(Self {

@@ -12,86 +12,25 @@
 //! - pre-norm blocks (timm `Block`: `x + attn(norm1(x))`, `x + mlp(norm2(x))`), no layer scale,
 //!   and a final `norm`.
 //!
-//! [`Block`] and [`Attention`] are shared with the trunk, which adds 2D RoPE.
+//! The blocks are [`pixl_nn::vit::Block`] (no LayerScale), shared with the trunk, which adds 2D
+//! RoPE, and with the Depth Anything 3 backbone.
 use crate::config::Config;
 use crate::layers::{conv2d, Conv};
 use candle_core::{Module, Result, Tensor};
 use candle_nn::{Conv2dConfig, VarBuilder};
-use pixl_nn::fused::{self, Act};
-use pixl_nn::{LayerNorm, Linear, Mlp, Rope2d};
+use pixl_nn::vit::BlockConfig;
+use pixl_nn::LayerNorm;
 
-/// Rotary embedding for the patch tokens of a sequence whose first `prefix` tokens (registers)
-/// are left unrotated.
-pub struct PatchRope<'a> {
-    pub rope: &'a Rope2d,
-    pub prefix: usize,
-}
+pub use pixl_nn::vit::{Block, PatchRope};
 
-/// Multi-head self-attention, fused `qkv` projection then `proj` (timm names).
-#[derive(Clone, Debug)]
-pub struct Attention {
-    qkv: Linear,
-    proj: Linear,
-    heads: usize,
-}
-
-impl Attention {
-    pub fn new(dim: usize, heads: usize, vb: VarBuilder) -> Result<Self> {
-        let qkv = Linear::load(dim, 3 * dim, vb.pp("qkv"))?;
-        let proj = Linear::load(dim, dim, vb.pp("proj"))?;
-        Ok(Self { qkv, proj, heads })
-    }
-
-    /// 8-bit `qkv` and `proj` where the CPU allows ([`Linear::quantize_int8`]); returns how many.
-    pub fn quantize_int8(&mut self) -> Result<usize> {
-        Ok(usize::from(self.qkv.quantize_int8()?) + usize::from(self.proj.quantize_int8()?))
-    }
-
-    pub fn int8_bytes(&self) -> usize {
-        self.qkv.int8_bytes() + self.proj.int8_bytes()
-    }
-
-    /// `(B, N, d)` → `(B, N, d)`; RoPE rotates queries and keys when given. On the CPU in f32
-    /// the head split and the rotation are one pass ([`fused::attention_qkv_rope`]).
-    pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
-        let qkv = self.qkv.forward_act(xs, Act::None)?;
-        let out = fused::attention_qkv_rope(&qkv, self.heads, rope.map(|r| (r.rope, r.prefix)))?;
-        self.proj.forward_act(&out, Act::None)
-    }
-}
-
-/// Pre-norm transformer block: `x + attn(norm1(x))`, then `x + mlp(norm2(x))`.
-#[derive(Clone, Debug)]
-pub struct Block {
-    norm1: LayerNorm,
-    attn: Attention,
-    norm2: LayerNorm,
-    mlp: Mlp,
-}
-
-impl Block {
-    pub fn new(dim: usize, heads: usize, mlp_ratio: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            norm1: LayerNorm::new(dim, eps, vb.pp("norm1"))?,
-            attn: Attention::new(dim, heads, vb.pp("attn"))?,
-            norm2: LayerNorm::new(dim, eps, vb.pp("norm2"))?,
-            mlp: Mlp::new(dim, mlp_ratio * dim, dim, vb.pp("mlp"))?,
-        })
-    }
-
-    /// The attention's and the MLP's linear layers in 8 bits where the CPU allows; returns how
-    /// many.
-    pub fn quantize_int8(&mut self) -> Result<usize> {
-        Ok(self.attn.quantize_int8()? + self.mlp.quantize_int8()?)
-    }
-
-    pub fn int8_bytes(&self) -> usize {
-        self.attn.int8_bytes() + self.mlp.int8_bytes()
-    }
-
-    pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
-        let xs = fused::residual(xs, &self.attn.forward(&self.norm1.forward(xs)?, rope)?)?;
-        fused::residual(&xs, &self.mlp.forward(&self.norm2.forward(&xs)?)?)
+/// The blocks' shape: `heads` heads, an MLP `mlp_ratio` times `cfg.dim` wide, no LayerScale.
+pub(crate) fn block_config(cfg: &Config, heads: usize, mlp_ratio: usize) -> BlockConfig {
+    BlockConfig {
+        dim: cfg.dim,
+        heads,
+        mlp_hidden: mlp_ratio * cfg.dim,
+        norm_eps: cfg.norm_eps,
+        layer_scale: false,
     }
 }
 
@@ -116,8 +55,9 @@ impl VitEncoder {
         let patch_embed = conv2d(3, cfg.dim, cfg.patch, conv_cfg, vb.pp("patch_embed").pp("proj"))?;
         let init = candle_nn::Init::Randn { mean: 0.0, stdev: 0.02 };
         let pos_embed = vb.get_with_hints((1, v.pos_grid * v.pos_grid, cfg.dim), "pos_embed", init)?;
+        let block_cfg = block_config(cfg, v.heads, v.mlp_ratio);
         let blocks = (0..v.depth)
-            .map(|i| Block::new(cfg.dim, v.heads, v.mlp_ratio, cfg.norm_eps, vb.pp("blocks").pp(i)))
+            .map(|i| Block::new(&block_cfg, vb.pp("blocks").pp(i)))
             .collect::<Result<Vec<_>>>()?;
         let norm = LayerNorm::new(cfg.dim, cfg.norm_eps, vb.pp("norm"))?;
         Ok(Self {

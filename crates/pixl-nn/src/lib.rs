@@ -12,6 +12,9 @@
 //! - [`rope`] — 2D rotary position embedding.
 //! - [`linear`] — a candle `Linear` with the fused f32 path and an optional 8-bit one.
 //! - [`mlp`] — Linear–GELU–Linear.
+//! - [`vit`] — the pre-norm ViT block (attention, MLP, optional LayerScale and RoPE) that the
+//!   PIXLRelight encoder and trunk and the DA3 backbone share.
+//! - [`dpt`] — the reassemble and fusion stages of a DPT head, generic over the convolution.
 //! - [`conv3x3`] — 3×3 convolution as L2-sized im2col tiles, one GEMM each, for inference.
 //! - [`winograd`] — stride-1 3×3 convolution by Winograd's F(4×4, 3×3), for inference.
 //! - [`dwconv`] — depthwise k×k convolution with its own forward and backward kernels.
@@ -29,6 +32,7 @@
 pub mod attention;
 pub mod backbones;
 pub mod conv3x3;
+pub mod dpt;
 pub mod dwconv;
 pub mod fastmath;
 pub mod fused;
@@ -40,6 +44,7 @@ pub mod ops;
 pub mod profile;
 pub mod rope;
 pub mod testing;
+pub mod vit;
 pub mod winograd;
 
 pub use attention::attention;

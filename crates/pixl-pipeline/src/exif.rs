@@ -17,9 +17,12 @@
 //!    `f = f35 · √(W² + H²) / 43.27`. For a 3:2 photo this is `f35 / 36 · W_long`, the long-side
 //!    rule; for 4:3 phone photos the diagonal rule gives a 4 % longer focal length than it.
 //!    The value 0 means "unknown" in EXIF and is ignored;
-//! 4. the default vertical field of view, [`super::reconstruct::DEFAULT_FOV_DEG`] (50°).
-use anyhow::bail;
+//! 4. the default vertical field of view, [`DEFAULT_FOV_DEG`] (50°).
+use crate::error::{PipelineError, Result};
 use std::path::Path;
+
+/// Vertical field of view assumed when neither a focal length, a field of view nor EXIF gives one.
+pub const DEFAULT_FOV_DEG: f64 = 50.0;
 
 /// What a JPEG's EXIF block says about the lens.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -200,16 +203,12 @@ impl Focal {
 }
 
 /// The focal length a `width` × `height` photo at `photo` is processed with (see the module docs).
-pub fn photo_focal(
-    photo: &Path,
-    width: usize,
-    height: usize,
-    focal: Option<f64>,
-    fov: Option<f64>,
-) -> anyhow::Result<Focal> {
+pub fn photo_focal(photo: &Path, width: usize, height: usize, focal: Option<f64>, fov: Option<f64>) -> Result<Focal> {
     if let Some(f) = focal {
         if !(f.is_finite() && f > 0.0) {
-            bail!("--focal {f}: the focal length must be a positive number of pixels");
+            return Err(PipelineError::input(format!(
+                "--focal {f}: the focal length must be a positive number of pixels"
+            )));
         }
         return Ok(Focal {
             px: f,
@@ -219,7 +218,9 @@ pub fn photo_focal(
     let from_vfov = |deg: f64| 0.5 * height as f64 / (0.5 * deg.to_radians()).tan();
     if let Some(d) = fov {
         if !(d.is_finite() && d > 0.0 && d < 180.0) {
-            bail!("--fov {d}: the vertical field of view must be in (0, 180) degrees");
+            return Err(PipelineError::input(format!(
+                "--fov {d}: the vertical field of view must be in (0, 180) degrees"
+            )));
         }
         return Ok(Focal {
             px: from_vfov(d),
@@ -233,7 +234,7 @@ pub fn photo_focal(
             source: FocalSource::Exif35mm(f35),
         });
     }
-    let d = super::reconstruct::DEFAULT_FOV_DEG;
+    let d = DEFAULT_FOV_DEG;
     Ok(Focal {
         px: from_vfov(d),
         source: FocalSource::Default(d),

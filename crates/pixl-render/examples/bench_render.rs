@@ -1,4 +1,4 @@
-//! Speed benchmark of the native path tracer (issue 4): a 512×512 render, 16 spp, of a
+//! Speed benchmark of the native path tracer: a 512×512 render, 16 spp, of a
 //! ~500 k-triangle depth-like mesh (a bumpy height field unprojected in front of the camera,
 //! as `pixl reconstruct` makes) lit by one area light and a constant environment.
 //!

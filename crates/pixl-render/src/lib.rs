@@ -1,40 +1,39 @@
 //! `pixl-render`: the scene description, a native path tracer that writes Cycles-equivalent
 //! render passes, the paper's lighting presets (§4.2), depth→mesh reconstruction and the
-//! Blender bridge (issue 4).
+//! Blender bridge. The crate has four parts, a folder each (`crates/pixl-render/README.md`
+//! draws them):
 //!
-//! - [`scene`]: the serde scene description (TOML / JSON), Blender units and conventions.
-//! - [`color`]: blackbody temperature → linear RGB.
-//! - [`mesh`]: triangle meshes.
-//! - [`integrator::render`]: path-trace a scene into a [`Film`] of Cycles passes (`scene` →
-//!   [`geometry`] + [`bvh`] + [`light`] + [`material`] → [`integrator`] → [`film`]), its
-//!   uniform numbers from [`sampler`] (padded Owen-scrambled Sobol by default).
-//! - [`placement`]: lights placed at a pixel of the photo or from a named side of the scene.
-//! - [`reconstruct::coarse_scene`]: the coarse scene of the paper's inference from a source render.
+//! - [`scene`]: the serde scene description (TOML / JSON, Blender units and conventions), with
+//!   [`scene::color`] (blackbody temperature → linear RGB) and [`scene::mesh`] (triangle meshes).
+//!   Uses nothing else of the crate but its error type.
+//! - [`trace`]: the path tracer. [`trace::integrator::render`] path-traces a scene into a
+//!   [`Film`] of Cycles passes (`scene` → [`trace::geometry`] + [`trace::bvh`] +
+//!   [`trace::light`] + [`trace::material`] → [`trace::integrator`] → [`trace::film`]), its
+//!   uniform numbers from [`trace::sampler`] (padded Owen-scrambled Sobol by default).
+//! - [`reconstruct`]: scenes made from a photo and lights placed in them: depth map → mesh
+//!   ([`reconstruct::depth`]), the coarse scene of the paper's inference
+//!   ([`reconstruct::coarse_scene`]), lights at a pixel or from a side
+//!   ([`reconstruct::placement`]) and the paper's presets ([`reconstruct::presets`]).
+//! - [`io`]: files other tools read and write: mesh files ([`io::export`]) and the Blender
+//!   bridge ([`io::blender`]).
+//!
+//! [`error`] and [`math`] serve them all. Every module is also re-exported at the crate root
+//! under its own name (`pixl_render::depth`, `pixl_render::light`, …), the paths callers use.
 // Index loops over fixed-size RGB / axis arrays read like the math; `!(x > 0.0)` is the
 // deliberate NaN-rejecting form.
 #![allow(clippy::needless_range_loop, clippy::neg_cmp_op_on_partial_ord)]
-pub mod blender;
-pub mod bvh;
-pub mod camera;
-pub mod color;
-pub mod denoise;
-pub mod depth;
 pub mod error;
-pub mod export;
-pub mod film;
-pub mod geometry;
-pub mod integrator;
-pub mod light;
-pub mod material;
+pub mod io;
 pub mod math;
-pub mod mesh;
-pub mod placement;
-pub mod presets;
 pub mod reconstruct;
-pub mod sampler;
-pub mod sampling;
 pub mod scene;
-pub mod texture;
+pub mod trace;
+
+// Every module at the crate root under its own name (`pixl_render::film`, `pixl_render::blender`, …).
+pub use io::{blender, export};
+pub use reconstruct::{depth, placement, presets};
+pub use scene::{color, mesh};
+pub use trace::{bvh, camera, denoise, film, geometry, integrator, light, material, sampler, sampling, texture};
 
 pub use error::{RenderError, Result};
 pub use film::Film;

@@ -208,7 +208,7 @@ pub fn prefetch<T>(p: *const T) {
 }
 
 /// `(sin x, cos x)` with no call and no branch (vectorisable; the spherical rectangles of
-/// [`crate::light`] are sampled a packet at a time), within 1.2e-7 of the true values
+/// [`crate::trace::light`] are sampled a packet at a time), within 1.2e-7 of the true values
 /// for `|x| ≤ 64` (tested; libm's `sinf`/`cosf` are within 6e-8): `x = q·π/2 + r` with `q` the
 /// nearest integer (Cody and Waite's reduction, π/2 in three parts, the first two short enough
 /// that their products with `q` are exact), Taylor polynomials of `sin r` and `cos r` on

@@ -103,21 +103,25 @@ function setState(s) {
   $("undo").disabled = !s.can_undo;
   $("redo").disabled = !s.can_redo;
 
-  // Images: the photo; over it the relit image once it is for the current lights, else the preview.
+  // Images: the photo at once; over it the newest relit image (kept up while the next one
+  // renders), the quick preview until there is one, and nothing while no light is placed.
   const photoKey = s.photo ? s.photo.name + "|" + (geo ? geo.label : "") + "|" + s.photo.work.join("x") : null;
   setImage("before", "photo", photoKey);
   const r = s.rendered;
   const current = r && r.generation === s.generation;
   const pv = s.preview ? "p" + s.preview.generation : null;
-  if (current) {
-    setImage("after", "relit", "r" + r.generation + "." + r.stage);
-    $("after").dataset.kind = r.final ? "relit-final" : "relit";
-  } else {
+  const rk = r ? "r" + r.generation + "." + r.stage : null;
+  if (r && s.lights.length) {
+    setImage("after", "relit", rk);
+    $("after").dataset.kind = current ? (r.final ? "relit-final" : "relit") : "relit-previous";
+  } else if (s.lights.length) {
     setImage("after", "preview", pv);
     $("after").dataset.kind = pv ? "preview" : "";
+  } else {
+    setImage("after", "preview", null);
+    $("after").dataset.kind = "";
   }
   setImage("p-preview", "preview", pv);
-  const rk = r ? "r" + r.generation + "." + r.stage : null;
   for (const n of ["render", "albedo", "shading", "residual", "relit"]) setImage("p-" + n, n, rk);
 
   // Status line.
@@ -126,6 +130,7 @@ function setState(s) {
   else if (!s.lights.length && !s.busy) status = "no lights: click the photo to add one, or pick a preset";
   else if (s.busy) status = s.busy + " …";
   else if (current) status = "done: relit with " + r.spp + " spp render" + (r.final ? "" : " (more samples coming)");
+  else if (r) status = "showing the last relit image; the new lights render when they stop changing";
   else status = "preview (the render starts when the lights stop changing)";
   if (s.error) status += " — " + s.error;
   $("status").textContent = status;

@@ -6,9 +6,10 @@
 //!    in metres; relative depth (known up to scale and shift); or disparity (inverse depth up to
 //!    scale and shift). Relative depth and disparity are normalised to `[0, 1]` over their valid
 //!    pixels and mapped to `[near, far]` = [`DEPTH_RANGE`] (1 m to 10 m; disparity through `1/d`),
-//!    as `pixl reconstruct` does without `--depth-range`.
-//! 2. **A depth estimator** plugged in through the [`DepthEstimator`] trait (none is built in
-//!    yet; `pixl studio` passes one when the crate that runs a monocular estimator is there).
+//!    as `pixl reconstruct` does without `--depth-range` (`pixl_pipeline::depth`).
+//! 2. **A depth estimator** plugged in through the [`DepthEstimator`] trait of `pixl_pipeline`
+//!    (`pixl studio` plugs in Depth Anything 3 when its weights are there, as `pixl relight`
+//!    does).
 //! 3. **The fallback**, labelled as such: a ground plane and a vertical backdrop fitted to the
 //!    photo's frame ([`fallback_depth`]): a level camera at [`FALLBACK_CAMERA_HEIGHT`] above the
 //!    ground, the backdrop at [`FALLBACK_BACKDROP`] metres; each pixel sees whichever is closer,
@@ -30,56 +31,17 @@ use pixl_render::depth::{depth_to_mesh, DepthMap, Intrinsics, MeshOptions};
 use pixl_render::geometry::Geometry;
 use pixl_render::math::V3;
 use pixl_render::scene::{Camera, Color, Object, Scene, Shape, Transform};
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use std::path::{Path, PathBuf};
 
 /// Near and far depth (m) that relative depth and disparity are mapped to.
-pub const DEPTH_RANGE: (f32, f32) = (1.0, 10.0);
+pub const DEPTH_RANGE: (f32, f32) = pixl_pipeline::depth::DEFAULT_DEPTH_RANGE;
 /// Height of the fallback's camera above its ground plane (m).
 pub const FALLBACK_CAMERA_HEIGHT: f32 = 1.5;
 /// Distance of the fallback's backdrop from the camera (m, z-depth).
 pub const FALLBACK_BACKDROP: f32 = 6.0;
 
-/// What a depth map's values mean.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum DepthKind {
-    /// z-depth in metres.
-    Metric,
-    /// Depth up to an unknown scale and shift (larger is farther).
-    Relative,
-    /// Inverse depth up to an unknown scale and shift (larger is nearer).
-    Disparity,
-}
-
-impl DepthKind {
-    pub fn parse(s: &str) -> Option<DepthKind> {
-        match s {
-            "metric" => Some(DepthKind::Metric),
-            "relative" => Some(DepthKind::Relative),
-            "disparity" => Some(DepthKind::Disparity),
-            _ => None,
-        }
-    }
-}
-
-/// What a [`DepthEstimator`] returns.
-#[derive(Clone, Debug)]
-pub struct EstimatedDepth {
-    /// The map, at any size (it is resampled to the working size).
-    pub depth: DepthMap,
-    pub kind: DepthKind,
-    /// The vertical FOV the estimator found, if it estimates one.
-    pub fov_y_deg: Option<f32>,
-}
-
-/// A monocular depth estimator, plugged in by the caller ([`crate::StudioConfig::estimator`]).
-pub trait DepthEstimator: Send + Sync {
-    /// A short name for the page's banner ("Depth Anything 3 (metric)").
-    fn name(&self) -> String;
-    /// Depth of `photo` (RGB, sRGB-encoded values in `[0, 1]`, the working size).
-    fn estimate(&self, photo: &Image) -> std::result::Result<EstimatedDepth, String>;
-}
+pub use pixl_pipeline::depth::{DepthEstimator, DepthKind, EstimatedDepth};
 
 /// Where the current geometry came from.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -249,58 +211,19 @@ impl Coarse {
     }
 }
 
-/// `depth` resampled (nearest neighbour) to `w × h`.
-pub fn resample_nearest(depth: &DepthMap, w: usize, h: usize) -> Result<DepthMap> {
-    if (depth.width, depth.height) == (w, h) {
-        return Ok(depth.clone());
-    }
-    let mut data = Vec::with_capacity(w * h);
-    for y in 0..h {
-        let sy = ((y as f64 + 0.5) * depth.height as f64 / h as f64) as usize;
-        for x in 0..w {
-            let sx = ((x as f64 + 0.5) * depth.width as f64 / w as f64) as usize;
-            data.push(depth.get(sx.min(depth.width - 1), sy.min(depth.height - 1)));
-        }
-    }
-    Ok(DepthMap::new(w, h, data)?)
-}
-
-/// Metric z-depth from a map of `kind` (see the module docs). Invalid pixels (non-finite; ≤ 0
-/// for metric depth and disparity) stay invalid (0). Errors when no pixel is valid.
-pub fn to_metric(depth: &DepthMap, kind: DepthKind) -> Result<DepthMap> {
-    let valid = |v: f32| match kind {
-        DepthKind::Metric | DepthKind::Disparity => v.is_finite() && v > 0.0,
-        DepthKind::Relative => v.is_finite(),
-    };
-    let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-    for &v in depth.data.iter().filter(|v| valid(**v)) {
-        lo = lo.min(v);
-        hi = hi.max(v);
-    }
-    if lo.is_nan() || hi.is_nan() || lo > hi {
+/// Metric z-depth at `w × h` from a map of `kind` (resampled bilinearly over its valid pixels,
+/// relative depth and disparity mapped to [`DEPTH_RANGE`]; `pixl_pipeline::depth`). Errors when
+/// no pixel is valid.
+pub fn metric_at(depth: &DepthMap, kind: DepthKind, w: usize, h: usize) -> Result<DepthMap> {
+    let mut d = depth.clone();
+    pixl_pipeline::depth::to_metric(&mut d, kind, DEPTH_RANGE);
+    let d = pixl_pipeline::depth::resize_depth(&d, w, h).map_err(|e| StudioError::Internal(e.to_string()))?;
+    if !d.data.iter().any(|v| *v > 0.0) {
         return Err(StudioError::BadRequest(
             "the depth map has no valid pixel (all are zero, negative or not a number)".into(),
         ));
     }
-    let (near, far) = DEPTH_RANGE;
-    let span = if hi > lo { hi - lo } else { 1.0 };
-    let data = depth
-        .data
-        .iter()
-        .map(|&v| {
-            if !valid(v) {
-                return 0.0;
-            }
-            let t = (v - lo) / span;
-            match kind {
-                DepthKind::Metric => v,
-                DepthKind::Relative => near + t * (far - near),
-                // t = 1 is the nearest point (largest disparity).
-                DepthKind::Disparity => 1.0 / (1.0 / far + t * (1.0 / near - 1.0 / far)),
-            }
-        })
-        .collect();
-    Ok(DepthMap::new(depth.width, depth.height, data)?)
+    Ok(d)
 }
 
 /// The fallback's z-depth at every pixel of a `w × h` image with vertical FOV `fov_y_deg`
@@ -327,18 +250,18 @@ mod tests {
     use super::*;
 
     #[test]
-    fn relative_and_disparity_map_to_the_depth_range_by_hand() {
+    fn metric_at_maps_kinds_and_refuses_an_empty_map() {
         let d = DepthMap::new(3, 1, vec![2.0, 4.0, 6.0]).unwrap();
-        let rel = to_metric(&d, DepthKind::Relative).unwrap();
-        assert_eq!(rel.data, vec![1.0, 5.5, 10.0]);
-        // Disparity 6 is the nearest (1 m), 2 the farthest (10 m), 4 halfway in 1/d:
-        // 1/(0.1 + 0.5·0.9) = 1/0.55.
-        let disp = to_metric(&d, DepthKind::Disparity).unwrap();
+        assert_eq!(
+            metric_at(&d, DepthKind::Relative, 3, 1).unwrap().data,
+            vec![1.0, 5.5, 10.0]
+        );
+        let disp = metric_at(&d, DepthKind::Disparity, 3, 1).unwrap();
         assert!((disp.data[0] - 10.0).abs() < 1e-5 && (disp.data[2] - 1.0).abs() < 1e-5);
         assert!((disp.data[1] - 1.0 / 0.55).abs() < 1e-5, "{:?}", disp.data);
-        let metric = to_metric(&DepthMap::new(2, 1, vec![0.0, 3.0]).unwrap(), DepthKind::Metric).unwrap();
+        let metric = metric_at(&DepthMap::new(2, 1, vec![0.0, 3.0]).unwrap(), DepthKind::Metric, 2, 1).unwrap();
         assert_eq!(metric.data, vec![0.0, 3.0]);
-        assert!(to_metric(&DepthMap::new(1, 1, vec![f32::NAN]).unwrap(), DepthKind::Metric).is_err());
+        assert!(metric_at(&DepthMap::new(1, 1, vec![f32::NAN]).unwrap(), DepthKind::Metric, 1, 1).is_err());
     }
 
     #[test]

@@ -6,7 +6,7 @@
 use crate::error::{Result, StudioError};
 use candle_core::{DType, Device, Tensor};
 use pixl_core::Image;
-use pixl_intrinsics::compose::{compose, ComposeOptions, PassSet};
+use pixl_intrinsics::compose::{compose_film, ComposeOptions};
 use pixl_intrinsics::ct::Ct;
 use pixl_model::fullres;
 use pixl_render::film::PixelSum;
@@ -102,10 +102,8 @@ pub fn run_stage(
     drop(sums);
     *cached = Some(renderer);
     let render = film.combined_srgb();
-    let passes = PassSet::from_exr_channels(&film.to_exr_channels(), None)?;
+    let ct = compose_film(&film, &ComposeOptions::default())?.ct;
     drop(film);
-    let ct = compose(&passes, &ComposeOptions::default())?.ct;
-    drop(passes);
     if cancel() {
         return Err(StageError::Cancelled);
     }
@@ -140,26 +138,13 @@ pub fn relight(photo: &Image, out: &StageOutput) -> Result<Image> {
     Ok(img)
 }
 
-/// 8-bit RGB PNG bytes of an image with values in [0, 1] (1 or 3+ channels; extra dropped).
+/// 8-bit PNG bytes of an image with values in [0, 1] (fast compression: sent at every change).
 pub fn png_bytes(img: &Image) -> Result<Vec<u8>> {
-    let (w, h) = (img.width, img.height);
-    let mut rgb = Vec::with_capacity(w * h * 3);
-    for px in img.data.chunks_exact(img.channels.max(1)) {
-        for c in 0..3 {
-            let v = px.get(c).or(px.first()).copied().unwrap_or(0.0);
-            let v = if v.is_finite() { v.clamp(0.0, 1.0) } else { 0.0 };
-            rgb.push((v * 255.0 + 0.5) as u8);
-        }
-    }
-    let mut out = Vec::new();
-    let enc = image::codecs::png::PngEncoder::new_with_quality(
-        &mut out,
-        image::codecs::png::CompressionType::Fast,
-        image::codecs::png::FilterType::Sub,
-    );
-    image::ImageEncoder::write_image(enc, &rgb, w as u32, h as u32, image::ExtendedColorType::Rgb8)
-        .map_err(|e| StudioError::Internal(format!("encoding a PNG: {e}")))?;
-    Ok(out)
+    Ok(pixl_core::io::encode_png(
+        img,
+        pixl_core::io::PngDepth::Eight,
+        pixl_core::io::PngCompression::Fast,
+    )?)
 }
 
 /// Mean of each of the first three channels.

@@ -25,9 +25,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
-/// The bundled demo weights (a `tiny` model; `assets/demo-weights/README.md`).
-const BUNDLED_WEIGHTS: &[u8] = include_bytes!("../../../assets/demo-weights/pixl-tiny-synth.safetensors");
-const BUNDLED_NAME: &str = "bundled pixl-tiny-synth.safetensors";
+// The bundled demo weights (a `tiny` model; `assets/demo-weights/README.md`), as `pixl relight`
+// loads them.
+use pixl_pipeline::relight::{BUNDLED_NAME, BUNDLED_WEIGHTS};
 
 /// How the studio works; [`StudioConfig::default`] is what `pixl studio` uses.
 #[derive(Clone)]
@@ -378,18 +378,20 @@ impl Studio {
     fn install_photo(&self, full: Image, name: &str) -> Result<()> {
         let cfg = &self.shared.config;
         let (ww, wh) = pixl_model::fullres::working_size(full.width, full.height, cfg.work_side);
-        let work = Image::from_chw(ww, wh, 3, &pixl_model::fullres::area_resize_to_chw(&full, ww, wh)?)?;
+        let work = pixl_core::resample::area_resize(&full, ww, wh)?;
         let (seq, dir) = self.next_dir();
         let mut notes = Vec::new();
         let coarse = match &cfg.estimator {
-            Some(est) => match est.estimate(&work) {
+            Some(est) => match est.estimate(
+                &work,
+                0.5 * wh as f64 / (0.5 * (cfg.fov_y_deg as f64).to_radians()).tan(),
+            ) {
                 Ok(d) => {
-                    let metric =
-                        crate::geometry::to_metric(&crate::geometry::resample_nearest(&d.depth, ww, wh)?, d.kind)?;
+                    let metric = crate::geometry::metric_at(&d.depth, d.kind, ww, wh)?;
                     Some(Coarse::from_depth(
                         &work,
                         &metric,
-                        d.fov_y_deg.unwrap_or(cfg.fov_y_deg),
+                        cfg.fov_y_deg,
                         GeometrySource::Estimator { name: est.name() },
                         &dir,
                     )?)
@@ -447,7 +449,7 @@ impl Studio {
         let _ = std::fs::remove_file(&file);
         self.check_pixels(name, depth.width, depth.height)?;
         let (ww, wh) = (photo.work.width, photo.work.height);
-        let metric = crate::geometry::to_metric(&crate::geometry::resample_nearest(&depth, ww, wh)?, kind)?;
+        let metric = crate::geometry::metric_at(&depth, kind, ww, wh)?;
         let source = GeometrySource::Depth {
             depth_kind: kind,
             file: name.to_string(),

@@ -411,12 +411,12 @@ fn a_depth_map_replaces_the_fallback_and_anchored_lights_follow() {
     assert_eq!(v["geometry"]["source"]["kind"], "depth");
     let after = studio.lights()[0].clone();
     assert!((after.position[2] + 1.5).abs() < 1e-3, "{:?}", after.position);
-    // Disparity: the same map is flat at the near end of the range... all pixels valid and equal
-    // map to 10 m (t = 0 everywhere).
+    // Disparity: a constant map says nothing about depth, so it lies in the middle of the range
+    // (as `pixl reconstruct` places it): t = 1/2 in 1/z between 1/10 and 1/1 m, z = 1/0.55 m.
     let (s, b) = http(addr, "POST", "/api/depth?name=d.npy&kind=disparity", &wall);
     assert_eq!(s, 200, "{}", String::from_utf8_lossy(&b));
     let l = studio.lights()[0].clone();
-    assert!((l.position[2] + 9.5).abs() < 1e-3, "{:?}", l.position);
+    assert!((l.position[2] + (1.0 / 0.55 - 0.5)).abs() < 1e-3, "{:?}", l.position);
     // All invalid: refused, the geometry stays.
     let (s, b) = http(addr, "POST", "/api/depth?name=bad.npy", &npy(4, 3, |_, _| 0.0));
     assert_eq!(s, 400);

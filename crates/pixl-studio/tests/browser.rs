@@ -164,6 +164,19 @@ async fn place_drag_preset_and_save_in_headless_chromium() {
     }
     assert!(loaded, "the photo did not load in the page");
     let _ = photo_el;
+    // No light yet: nothing covers the photo (no black overlay while there is nothing to show).
+    let over = c
+        .execute(
+            "const a = document.getElementById('after'); return [a.getAttribute('src'), getComputedStyle(a).visibility]",
+            vec![],
+        )
+        .await
+        .unwrap();
+    assert_eq!(
+        over,
+        serde_json::json!([null, "hidden"]),
+        "the photo is covered before any light"
+    );
 
     // Click the photo's centre: a point light anchored there.
     let gen0 = state(addr)["generation"].as_u64().unwrap();

@@ -1,7 +1,8 @@
 //! The pair sampler (paper §3.3, App. A "Data"): each sample is two distinct images of one
 //! scene with roles (source, target) drawn at random, the *same* random crop for both — aspect
 //! ratio (short/long side) in `[aspect_min, aspect_max]` = [0.33, 1.0], either orientation —
-//! resized so the longer side is `long_side` (512), and one random horizontal flip applied to
+//! resized so the longer side is `long_side` (512) by a tent filter
+//! ([`pixl_core::resample::crop_resize`]), and one random horizontal flip applied to
 //! source, target and C_T alike. There is no photometric augmentation of source or target.
 //!
 //! Every draw is a pure function of `(seed, step, index)` ([`Rng::for_stream`]), so the data
@@ -17,10 +18,14 @@
 //! This is the training recipe, so it lives here and not in `pixl-data`: the datasets only list
 //! scenes and read files ([`pixl_data::load_image`], [`pixl_data::load_intrinsics`]).
 use crate::error::{Result, TrainError};
+use pixl_core::resample::crop_resize;
 use pixl_core::{Image, Rng};
 use pixl_data::{load_image, ImageEntry, SceneEntry};
 use std::collections::HashMap;
 use std::sync::Mutex;
+
+/// A crop rectangle in the pixels of the original images.
+pub use pixl_core::resample::CropRect;
 
 const STREAM_EPOCH: u64 = 0xE90C;
 const STREAM_STEP: u64 = 0x57E9;
@@ -98,15 +103,6 @@ impl SamplerConfig {
         }
         Ok(())
     }
-}
-
-/// A crop rectangle in the pixels of the original images.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct CropRect {
-    pub x: usize,
-    pub y: usize,
-    pub width: usize,
-    pub height: usize,
 }
 
 /// One training pair, ready to batch: all three share `width × height`.
@@ -394,21 +390,17 @@ impl Sampler {
                 });
             }
         }
-        let prep = |img: &Image| {
-            let out = crop_resize(img, crop, ow, oh);
-            if flipped {
-                flip_horizontal(&out)
-            } else {
-                out
-            }
+        let prep = |img: &Image| -> Result<Image> {
+            let out = crop_resize(img, crop, ow, oh)?;
+            Ok(if flipped { flip_horizontal(&out) } else { out })
         };
         Ok(Sample {
             scene: scene.name.clone(),
             source_index,
             target_index,
-            source: prep(&source),
-            target: prep(&target),
-            ct: prep(&ct),
+            source: prep(&source)?,
+            target: prep(&target)?,
+            ct: prep(&ct)?,
             crop,
             flipped,
         })
@@ -439,71 +431,6 @@ fn draw_crop(rng: &mut Rng, w: usize, h: usize, ratio: f32, min_scale: f32) -> C
         width: cw,
         height: ch,
     }
-}
-
-/// Tent-filter weights mapping `n_in` source samples (starting at `offset`) onto `n_out`: for
-/// every output sample, `(first source index, weights)`. The filter widens with the minification
-/// factor, so downsampling averages (no aliasing) and upsampling interpolates linearly.
-fn resample_weights(offset: usize, n_in: usize, n_out: usize, limit: usize) -> Vec<(usize, Vec<f32>)> {
-    let scale = n_in as f64 / n_out as f64;
-    let support = scale.max(1.0);
-    (0..n_out)
-        .map(|o| {
-            let center = offset as f64 + (o as f64 + 0.5) * scale - 0.5;
-            let lo = (center - support).floor().max(0.0) as usize;
-            let hi = ((center + support).ceil() as usize).min(limit - 1);
-            let mut ws: Vec<f32> = (lo..=hi)
-                .map(|x| (1.0 - (x as f64 - center).abs() / support).max(0.0) as f32)
-                .collect();
-            let sum: f32 = ws.iter().sum();
-            if sum > 0.0 {
-                ws.iter_mut().for_each(|w| *w /= sum);
-            } else {
-                // centre falls exactly between clamped edges: take the nearest sample
-                ws.iter_mut().for_each(|w| *w = 0.0);
-                let nearest = (center.round().max(lo as f64) as usize).min(hi) - lo;
-                ws[nearest] = 1.0;
-            }
-            (lo, ws)
-        })
-        .collect()
-}
-
-/// Crops `rect` out of `img` and resizes it to `ow × oh` (separable tent filter).
-pub fn crop_resize(img: &Image, rect: CropRect, ow: usize, oh: usize) -> Image {
-    let ch = img.channels;
-    let wx = resample_weights(rect.x, rect.width, ow, img.width);
-    let wy = resample_weights(rect.y, rect.height, oh, img.height);
-    // horizontal pass over the rows the vertical pass will need
-    let (row_lo, row_hi) = (
-        wy.iter().map(|(lo, _)| *lo).min().unwrap_or(0),
-        wy.iter().map(|(lo, w)| lo + w.len()).max().unwrap_or(0),
-    );
-    let mut tmp = vec![0.0f32; (row_hi - row_lo) * ow * ch];
-    for y in row_lo..row_hi {
-        for (o, (lo, ws)) in wx.iter().enumerate() {
-            let dst = &mut tmp[((y - row_lo) * ow + o) * ch..][..ch];
-            for (k, w) in ws.iter().enumerate() {
-                let src = &img.data[(y * img.width + lo + k) * ch..][..ch];
-                for c in 0..ch {
-                    dst[c] += w * src[c];
-                }
-            }
-        }
-    }
-    let mut out = Image::new(ow, oh, ch);
-    for (oy, (lo, ws)) in wy.iter().enumerate() {
-        for x in 0..ow {
-            let dst = &mut out.data[(oy * ow + x) * ch..][..ch];
-            for (k, w) in ws.iter().enumerate() {
-                let src = &tmp[((lo + k - row_lo) * ow + x) * ch..][..ch];
-                for c in 0..ch {
-                    dst[c] += w * src[c];
-                }
-            }
-        }
-    }
-    out
 }
 
 /// Mirror image left ↔ right.

@@ -9,27 +9,12 @@
 //!
 //! Every timed run ends with a device synchronisation, so CUDA's asynchronous launches are
 //! inside the time.
+use crate::args::DtypeArg;
 use crate::Ctx;
 use candle_core::{DType, Device, Tensor};
 use pixl_core::Rng;
 use pixl_model::Config;
 use std::path::PathBuf;
-
-/// Compute dtype of the network.
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum DtypeArg {
-    F32,
-    Bf16,
-}
-
-impl From<DtypeArg> for DType {
-    fn from(d: DtypeArg) -> DType {
-        match d {
-            DtypeArg::F32 => DType::F32,
-            DtypeArg::Bf16 => DType::BF16,
-        }
-    }
-}
 
 #[derive(clap::Subcommand, Debug)]
 pub enum Command {

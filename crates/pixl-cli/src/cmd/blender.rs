@@ -1,4 +1,4 @@
-//! `pixl blender export scene.toml -o scene.py`: the Blender bridge (issue 4, part 5). The script
+//! `pixl blender export scene.toml -o scene.py`: the Blender bridge. The script
 //! rebuilds the scene in Blender and renders Cycles' passes into a multilayer EXR; see
 //! `pixl_render::blender` for the mapping. Run it with
 //! `blender -b -P scene.py -- --out passes.exr --spp N` or `python scene.py --out passes.exr --spp N`.

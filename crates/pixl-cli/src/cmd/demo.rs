@@ -22,7 +22,7 @@ use crate::Ctx;
 use anyhow::{Context, Result};
 use candle_core::{DType, Device, Tensor};
 use pixl_core::Image;
-use pixl_intrinsics::compose::{compose, ComposeOptions, PassSet};
+use pixl_intrinsics::compose::{compose_film, ComposeOptions};
 use pixl_render::integrator::{render, RenderOptions};
 use pixl_render::presets::{apply_preset, PRESETS};
 use pixl_render::scene::Scene;
@@ -155,8 +155,7 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
             None => film,
         };
         let path_traced = authored.combined_srgb();
-        let passes = PassSet::from_exr_channels(&authored.to_exr_channels(), None)?;
-        let composed = compose(&passes, &ComposeOptions::default())?;
+        let composed = compose_film(&authored, &ComposeOptions::default())?;
         let ct = composed.ct;
         let ct_t = Tensor::from_vec(ct.to_chw(), (1, 9, ct.height(), ct.width()), &dev)?;
         let relit = from_tensor(&model.forward(&src_t, &ct_t)?)?;

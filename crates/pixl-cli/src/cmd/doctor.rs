@@ -15,7 +15,7 @@ pub struct Args {
     #[arg(long)]
     pub json: bool,
     #[command(flatten)]
-    pub weights: super::models::WeightsArgs,
+    pub weights: crate::weights::WeightsArgs,
 }
 
 /// The CPU's SIMD extensions that matter for the matrix kernels, detected at run time.
@@ -77,17 +77,6 @@ fn cpu_model() -> Option<String> {
         .map(|(_, v)| v.trim().to_string())
 }
 
-/// (total, available) bytes from `/proc/meminfo` (Linux), if readable.
-fn memory() -> Option<(u64, u64)> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let field = |name: &str| -> Option<u64> {
-        let line = text.lines().find(|l| l.starts_with(name))?;
-        let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-        Some(kib * 1024)
-    };
-    Some((field("MemTotal:")?, field("MemAvailable:")?))
-}
-
 fn gib(b: u64) -> String {
     format!("{:.1} GiB", b as f64 / (1u64 << 30) as f64)
 }
@@ -104,7 +93,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let level = simd_level(&simd);
     let logical = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
     let threads = candle_core::utils::get_num_threads();
-    let mem = memory();
+    let mem = pixl_pipeline::relight::meminfo();
     let cuda: CudaReport = device::cuda_report();
     let opts = HubOptions::from_env(args.weights.models.clone(), args.weights.offline);
     let hub = Hub::new(opts.clone());

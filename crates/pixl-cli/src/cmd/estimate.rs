@@ -9,25 +9,23 @@
 //!   (relative depth, up to scale: reconstruct it with `--depth-kind relative`). Weights: see
 //!   `pixl models` (models folder, Hugging Face cache, download on first use; `--offline`).
 //! - **Focal length** (for the metric scale and the camera): `--focal`, `--fov`, EXIF, default
-//!   50° vertical; see [`super::exif`].
+//!   50° vertical; see `pixl_pipeline::exif`.
 //! - **Sky** (the estimator's sky score ≥ its threshold) is written as depth **0** = missing:
 //!   `pixl reconstruct` builds no mesh there and the scene's world stands in for it.
 //! - **Outputs** are checked before any work (extension, folder exists, none is the photo, none
 //!   repeats), each written atomically.
-use super::exif::{photo_focal, Focal};
-use super::iid::{self, IidArgs};
-use super::models::WeightsArgs;
+use crate::estimators::{ct_from_lighting, estimate_depth, read_photo, DepthModel, Materials};
+use crate::iid::{self, IidArgs};
+use crate::weights::WeightsArgs;
 use crate::Ctx;
-use anyhow::{bail, Context};
+use anyhow::Context;
 use pixl_core::output::check_output;
 use pixl_core::Image;
-use pixl_estimate::da3::{Da3, Da3Options, Da3Variant, DepthEstimate};
-use pixl_estimate::hub::{self, Resolved};
-use pixl_estimate::marigold::{IidPrediction, IidVariant};
+use pixl_estimate::hub::Resolved;
+use pixl_estimate::marigold::IidVariant;
+use pixl_pipeline::estimators::{check_process_res, depth_without_sky};
+use pixl_pipeline::Photo;
 use std::path::{Path, PathBuf};
-
-/// Smallest photo side the estimators accept (one 14-pixel ViT patch).
-pub const MIN_SIDE: usize = 14;
 
 #[derive(clap::Subcommand, Debug)]
 pub enum Command {
@@ -55,32 +53,6 @@ The file has the channels `pixl compose` writes (albedo/shading/residual .R .G .
 p98 rescale of App. B. For a whole dataset use `pixl prepare-targets`."
     )]
     Lighting(LightingArgs),
-}
-
-/// The depth estimators.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum DepthModel {
-    /// Metric depth in metres (needs a focal length; see --fov/--focal).
-    #[value(name = "da3-metric")]
-    Da3Metric,
-    /// Relative depth (up to scale).
-    #[value(name = "da3-mono")]
-    Da3Mono,
-}
-
-impl DepthModel {
-    pub fn name(self) -> &'static str {
-        match self {
-            DepthModel::Da3Metric => "da3-metric",
-            DepthModel::Da3Mono => "da3-mono",
-        }
-    }
-    fn variant(self) -> Da3Variant {
-        match self {
-            DepthModel::Da3Metric => Da3Variant::Metric,
-            DepthModel::Da3Mono => Da3Variant::Mono,
-        }
-    }
 }
 
 #[derive(clap::Args, Debug)]
@@ -170,28 +142,6 @@ pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
 /// The files `pixl estimate materials` writes.
 pub const MATERIAL_FILES: [&str; 4] = ["albedo.exr", "albedo.png", "roughness.exr", "metallic.exr"];
 
-/// Estimated materials at the photo's size: linear albedo (RGB), roughness and metallic (1 channel).
-pub struct Materials {
-    pub albedo_linear: Image,
-    pub roughness: Image,
-    pub metallic: Image,
-}
-
-impl Materials {
-    /// From an Appearance prediction: albedo is sRGB-encoded (decoded here), the material map
-    /// holds roughness in R and metallicity in G.
-    pub fn from_prediction(p: &IidPrediction) -> anyhow::Result<Self> {
-        let albedo = p.get("albedo").context("the prediction has no albedo")?;
-        let material = p.get("material").context("the prediction has no material map")?;
-        let (w, h) = (albedo.width, albedo.height);
-        Ok(Self {
-            albedo_linear: albedo.map(|v| pixl_core::image::srgb_to_linear(v.clamp(0.0, 1.0))),
-            roughness: Image::from_fn(w, h, 1, |x, y, _| material.get(x, y, 0).clamp(0.0, 1.0)),
-            metallic: Image::from_fn(w, h, 1, |x, y, _| material.get(x, y, 1).clamp(0.0, 1.0)),
-        })
-    }
-}
-
 fn mean(img: &Image) -> f64 {
     img.data.iter().map(|&v| v as f64).sum::<f64>() / img.data.len().max(1) as f64
 }
@@ -248,16 +198,6 @@ fn materials(args: MaterialsArgs, ctx: &Ctx) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// C_T of a photo from a Lighting prediction (A, S, R linear; App. B's rescale).
-pub fn ct_from_lighting(p: &IidPrediction) -> anyhow::Result<(pixl_intrinsics::ct::Ct, f32)> {
-    let get = |n: &str| p.get(n).with_context(|| format!("the prediction has no {n} map"));
-    Ok(pixl_intrinsics::compose::ct_from_decomposition(
-        get("albedo")?,
-        get("shading")?,
-        get("residual")?,
-    )?)
-}
-
 fn lighting(args: LightingArgs, ctx: &Ctx) -> anyhow::Result<()> {
     let ctx = &ctx.for_json(args.json);
     check_output(&args.out, &["exr"], &[&args.photo])?;
@@ -308,111 +248,6 @@ fn weights_json(r: &Resolved) -> serde_json::Value {
     })
 }
 
-/// Reads a photo for an estimator: RGB, finite, at least [`MIN_SIDE`] on each side, sRGB-encoded
-/// values in [0, 1] (EXR photos are linear and get encoded).
-pub fn read_photo(path: &Path) -> anyhow::Result<Image> {
-    let img = pixl_core::io::read_rgb_finite(path).context("reading the photo")?;
-    if img.width < MIN_SIDE || img.height < MIN_SIDE {
-        bail!(
-            "{}: the photo is {}x{}; depth estimation needs at least {MIN_SIDE}x{MIN_SIDE} pixels",
-            path.display(),
-            img.width,
-            img.height
-        );
-    }
-    Ok(if pixl_core::io::extension(path) == "exr" {
-        img.map(|v| pixl_core::image::linear_to_srgb(v.clamp(0.0, 1.0)))
-    } else {
-        img
-    })
-}
-
-/// Checks `--process-res`.
-pub fn check_process_res(r: usize) -> anyhow::Result<()> {
-    if !(MIN_SIDE..=4096).contains(&r) {
-        bail!("--process-res {r}: must be between {MIN_SIDE} and 4096");
-    }
-    Ok(())
-}
-
-/// A depth estimate with its provenance.
-pub struct Estimated {
-    pub estimate: DepthEstimate,
-    pub weights: Resolved,
-    pub model: DepthModel,
-    pub focal: Focal,
-}
-
-impl Estimated {
-    /// The depth with sky (and anything non-finite or ≤ 0) as 0 = missing.
-    pub fn depth_without_sky(&self) -> Vec<f32> {
-        let d = &self.estimate.depth;
-        (0..d.width * d.height)
-            .map(|i| {
-                let v = d.data[i * d.channels];
-                let sky = self.estimate.sky_mask.get(i).copied().unwrap_or(false);
-                if sky || !v.is_finite() || v <= 0.0 {
-                    0.0
-                } else {
-                    v
-                }
-            })
-            .collect()
-    }
-}
-
-/// Finds (or downloads) the weights, loads the model, and estimates the photo's depth.
-pub fn estimate_depth(
-    photo: &Image,
-    model: DepthModel,
-    focal: Focal,
-    process_res: usize,
-    device: &str,
-    weights: &WeightsArgs,
-    ctx: &Ctx,
-) -> anyhow::Result<Estimated> {
-    let spec = hub::lookup(model.name())?;
-    let hub = weights.hub();
-    let resolved = super::models::resolve(&hub, spec, ctx)?;
-    let device = crate::device::parse_device(device)?;
-    tracing::debug!("{}: weights from {}", spec.name, resolved.source);
-    let net = Da3::load(&resolved.dir, &device)
-        .with_context(|| format!("loading `{}` from {}", spec.name, resolved.dir.display()))?;
-    if net.variant() != model.variant() {
-        bail!(
-            "{}: the checkpoint is DA3 {:?}, but `{}` was asked for (a config.json of another model?)",
-            resolved.dir.display(),
-            net.variant(),
-            spec.name
-        );
-    }
-    let opts = Da3Options {
-        process_res,
-        focal_px_at_photo: Some(focal.px),
-    };
-    let estimate = net
-        .estimate(photo, &opts)
-        .with_context(|| format!("estimating depth with `{}`", spec.name))?;
-    let d = &estimate.depth;
-    if (d.width, d.height) != (photo.width, photo.height) || d.channels < 1 {
-        bail!(
-            "`{}` returned a {}x{}x{} depth map for a {}x{} photo",
-            spec.name,
-            d.width,
-            d.height,
-            d.channels,
-            photo.width,
-            photo.height
-        );
-    }
-    Ok(Estimated {
-        estimate,
-        weights: resolved,
-        model,
-        focal,
-    })
-}
-
 /// Min, median and max of the positive values (None if there are none).
 fn stats(v: &[f32]) -> Option<(f32, f32, f32)> {
     let mut s: Vec<f32> = v.iter().copied().filter(|x| *x > 0.0).collect();
@@ -456,19 +291,10 @@ fn depth(args: DepthArgs, ctx: &Ctx) -> anyhow::Result<()> {
         check_output(s, &["png"], &inputs)?;
     }
     check_process_res(args.process_res)?;
-    let photo = read_photo(&args.photo)?;
-    let (w, h) = (photo.width, photo.height);
-    let focal = photo_focal(&args.photo, w, h, args.focal, args.fov)?;
-    let est = estimate_depth(
-        &photo,
-        args.model,
-        focal,
-        args.process_res,
-        &args.device,
-        &args.weights,
-        ctx,
-    )?;
-    let depth = est.depth_without_sky();
+    let photo = Photo::open(&args.photo, args.focal, args.fov)?;
+    let (w, h) = photo.size();
+    let est = estimate_depth(&photo, args.model, args.process_res, &args.device, &args.weights, ctx)?;
+    let depth = depth_without_sky(&est.estimate);
     let mut chans = pixl_core::exrio::ExrChannels::new(w, h);
     chans.push("Z", depth.clone())?;
     pixl_core::exrio::write_exr_channels(&args.out, &chans)?;

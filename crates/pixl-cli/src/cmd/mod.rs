@@ -7,8 +7,6 @@ pub mod demo;
 pub mod doctor;
 pub mod estimate;
 pub mod eval;
-pub mod exif;
-pub mod iid;
 pub mod intrinsics;
 pub mod light;
 pub mod model;

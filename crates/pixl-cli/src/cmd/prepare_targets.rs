@@ -9,8 +9,8 @@
 //!   nothing and are counted apart.
 //! - One model load for the whole run; a progress bar over images with an ETA; `--limit N`
 //!   prepares at most N images this run.
-use super::iid::{self, IidArgs};
-use super::models::WeightsArgs;
+use crate::iid::{self, IidArgs};
+use crate::weights::WeightsArgs;
 use crate::Ctx;
 use anyhow::Context;
 use pixl_estimate::marigold::IidVariant;
@@ -89,7 +89,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             let pred = m
                 .predict(&photo, &opts, &mut |_| {})
                 .with_context(|| format!("{}: estimating its intrinsics", image.display()))?;
-            let (ct, _) = super::estimate::ct_from_lighting(&pred)?;
+            let (ct, _) = crate::estimators::ct_from_lighting(&pred)?;
             pixl_intrinsics::ct::write_ct(out, &ct)?;
             written.push(out.clone());
             pb.inc(1);

@@ -3,8 +3,9 @@
 //! Two forms:
 //! - **From a photo, in one command**: `pixl relight photo.jpg --preset NAME -o relit.png`
 //!   (and/or `--light 'FLAGS'`, `--scene lights.toml`) runs the inference pipeline of §3.4:
-//!   `pixl reconstruct` (depth from `--depth`, else Depth Anything 3) → lights → the native path
-//!   tracer at the working size → `compose` → the network. `--keep DIR` keeps every intermediate.
+//!   the photo's reconstruction (depth from `--depth`, else Depth Anything 3), in memory → lights
+//!   → the native path tracer at the working size → `compose` → the network. The photo is decoded
+//!   once; the scene is written only with `--keep DIR`, which keeps every intermediate.
 //! - **With a given C_T**: `pixl relight --source photo.png --intrinsics ct.exr -o relit.png`.
 //!
 //! Any size: the network runs at a working size (long side `--max-side`, default 1024; the
@@ -19,33 +20,26 @@
 //! working size, the render at the working size) are not in the plan; they finish and free their
 //! memory before the network starts.
 //!
-//! Weights: `--weights`, else the bundled demo weights compiled into the binary
-//! (`assets/demo-weights/pixl-tiny-synth.safetensors`, 2.8 MB, so they are there after
-//! `cargo install` too). Sources: PNG/JPEG as stored values in [0, 1], EXR as stored (values
-//! outside [0, 1] clamped with a warning; non-finite refused). Output `.png` 16-bit, `.jpg`,
+//! The stages are `pixl_pipeline`'s (photo, depth, reconstruct, render, relight); this module
+//! parses the flags, places the lights and prints. Weights: `--weights`, else the bundled demo
+//! weights compiled into the binary (`pixl_pipeline::relight::BUNDLED_WEIGHTS`, 2.8 MB, so they
+//! are there after `cargo install` too). Sources: PNG/JPEG as stored values in [0, 1], EXR as
+//! stored (values outside [0, 1] clamped with a warning; non-finite refused). Output `.png` 16-bit, `.jpg`,
 //! `.exr` f32, written atomically. With freshly initialised weights the output equals the source
 //! exactly, at any size.
-use super::light::LightSpec;
 use crate::Ctx;
 use anyhow::{bail, Context};
-use candle_core::DType;
 use indicatif::{ProgressBar, ProgressStyle};
 use pixl_core::Image;
-use pixl_intrinsics::compose::{compose, ComposeOptions, PassSet};
-use pixl_intrinsics::ct::Ct;
-use pixl_model::fullres::{self, MemoryPlan};
+use pixl_model::fullres;
+use pixl_pipeline::lights::LightSpec;
+use pixl_pipeline::relight::{check_budget, ct_at_working_size, gb, Budget, Network, DEFAULT_MAX_SIDE};
+use pixl_pipeline::Photo;
 use pixl_render::presets::{apply_preset, PRESETS};
 use pixl_render::scene::Light;
-use pixl_render::{render, RenderOptions, Scene};
+use pixl_render::Scene;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
-
-/// The bundled demo weights (a `tiny` model, see `assets/demo-weights/README.md`).
-const BUNDLED_WEIGHTS: &[u8] = include_bytes!("../../../../assets/demo-weights/pixl-tiny-synth.safetensors");
-const BUNDLED_NAME: &str = "bundled pixl-tiny-synth.safetensors";
-
-/// Default long side of the working size.
-pub const DEFAULT_MAX_SIDE: usize = 1024;
 /// Output formats, by extension.
 const OUTPUT_EXTS: &[&str] = &["png", "jpg", "jpeg", "exr"];
 
@@ -92,8 +86,8 @@ pub struct Args {
     #[arg(long, value_name = "GB")]
     pub max_memory: Option<f64>,
     /// Compute dtype of the network.
-    #[arg(long, value_enum, default_value_t = super::bench::DtypeArg::F32)]
-    pub dtype: super::bench::DtypeArg,
+    #[arg(long, value_enum, default_value_t = crate::args::DtypeArg::F32)]
+    pub dtype: crate::args::DtypeArg,
     /// 8-bit matrix products in the network's linear layers (CPU with AVX-512 VNNI; elsewhere a
     /// warning and f32): the network 1.6-1.8x faster at the small and paper sizes, its output
     /// within 59-70 dB PSNR of f32 (BENCHMARKS.md).
@@ -148,7 +142,7 @@ pub struct Args {
     #[arg(long)]
     pub json: bool,
     #[command(flatten)]
-    pub models: super::models::WeightsArgs,
+    pub models: crate::weights::WeightsArgs,
 }
 
 /// Parses `--light` words with the flags of `pixl light add`.
@@ -207,155 +201,23 @@ pub fn read_lights(path: &Path) -> anyhow::Result<Vec<Light>> {
     Ok(file.lights)
 }
 
-/// The network, its config, and where it came from.
-struct Network {
-    model: pixl_model::PixlRelight,
-    cfg: pixl_model::Config,
-    name: String,
-    /// Bytes of the 8-bit weight copies (`--int8`; 0 otherwise), held beside the f32 weights.
-    int8_bytes: u64,
-}
-
-fn load_network(
-    ctx: &Ctx,
-    weights: Option<&Path>,
-    dtype: DType,
-    device: &candle_core::Device,
-    int8: bool,
-) -> anyhow::Result<Network> {
-    if int8 {
-        crate::device::check_int8(device, dtype)?;
+fn load_network(ctx: &Ctx, args: &Args, device: &candle_core::Device) -> anyhow::Result<Network> {
+    if args.int8 {
+        crate::device::check_int8(device, args.dtype.into())?;
     }
     let sp = spinner(ctx, "loading the weights");
-    let (cfg, mut model, name) = match weights {
-        Some(w) => {
-            let (cfg, model) = pixl_model::load(w, device, dtype)?;
-            (cfg, model, w.display().to_string())
-        }
-        None => {
-            let (cfg, model) = pixl_model::load_bytes(Path::new(BUNDLED_NAME), BUNDLED_WEIGHTS, device, dtype)?;
-            (cfg, model, BUNDLED_NAME.to_string())
-        }
-    };
-    if int8 {
-        match model.quantize_int8()? {
-            0 => tracing::warn!("--int8: this CPU has no AVX-512 VNNI; the network runs in f32"),
-            n => tracing::info!("--int8: {n} linear layers quantized to 8 bits"),
-        }
-    }
+    let net = Network::load(args.weights.as_deref(), args.dtype.into(), device, args.int8);
     sp.finish_and_clear();
-    tracing::info!(
-        "weights: {name} ({} parameters, patch {})",
-        cfg.param_count(),
-        cfg.patch
-    );
-    let int8_bytes = model.int8_bytes();
-    Ok(Network {
-        model,
-        cfg,
-        name,
-        int8_bytes,
-    })
+    Ok(net?)
 }
 
-/// Bytes of memory available now (Linux `MemAvailable`), if known.
-fn available_memory() -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb * 1024)
-}
-
-fn gb(bytes: u64) -> String {
-    format!("{:.2} GB", bytes as f64 / 1e9)
-}
-
-/// What relighting a `w × h` photo at `max_side` costs: the working size, the network's plan,
-/// the 8-bit weight copies (`--int8`), and the full-size buffers (the photo in f32 and the
-/// encoded output, `full_bytes_per_px`).
-struct Budget {
-    work: (usize, usize),
-    plan: MemoryPlan,
-    int8: u64,
-    full: u64,
-}
-
-impl Budget {
-    fn new(net: &Network, dtype: DType, size: (usize, usize), max_side: usize, full_bytes_per_px: u64) -> Self {
-        let work = fullres::working_size(size.0, size.1, max_side);
-        Budget {
-            work,
-            plan: fullres::plan_memory(&net.cfg, dtype, work.0, work.1),
-            int8: net.int8_bytes,
-            full: full_bytes_per_px * (size.0 * size.1) as u64,
-        }
-    }
-
-    /// The network's planned peak with its 8-bit weight copies.
-    fn network(&self) -> u64 {
-        self.plan.peak_bytes() + self.int8
-    }
-
-    fn total(&self) -> u64 {
-        self.network() + self.full
-    }
-}
-
-/// Plans the memory and refuses a request that does not fit `--max-memory`, naming the figure
-/// and a `--max-side` that fits.
-fn check_budget(args: &Args, net: &Network, size: (usize, usize), per_px: u64) -> anyhow::Result<Budget> {
-    let dtype: DType = args.dtype.into();
-    let budget = Budget::new(net, dtype, size, args.max_side, per_px);
-    let (limit, whence) = match args.max_memory {
-        Some(g) if g.is_finite() && g > 0.0 => ((g * 1e9) as u64, "--max-memory"),
+/// `--max-memory` in bytes, checked.
+fn max_memory(args: &Args) -> anyhow::Result<Option<u64>> {
+    match args.max_memory {
+        Some(g) if g.is_finite() && g > 0.0 => Ok(Some((g * 1e9) as u64)),
         Some(g) => bail!("--max-memory {g}: must be a positive number of GB"),
-        None => match available_memory() {
-            Some(b) => (b, "available now"),
-            None => (u64::MAX, "unknown"),
-        },
-    };
-    let (stage, _) = budget.plan.peak();
-    tracing::info!(
-        "working size {}x{} ({} tokens): planned peak {} ({stage}) + {} for the full-size image",
-        budget.work.0,
-        budget.work.1,
-        budget.plan.tokens,
-        gb(budget.network()),
-        gb(budget.full)
-    );
-    if budget.total() > limit {
-        // The largest --max-side (a multiple of 64, or 16 at the least) that fits.
-        let mut fits = None;
-        let mut side = args.max_side.min(size.0.max(size.1));
-        while side > 16 {
-            side = if side > 64 { (side - 1) / 64 * 64 } else { 16 };
-            let b = Budget::new(net, dtype, size, side, per_px);
-            if b.total() <= limit {
-                fits = Some((side, b.total()));
-                break;
-            }
-        }
-        let hint = match fits {
-            Some((s, bytes)) => format!("lower --max-side (e.g. --max-side {s} needs about {})", gb(bytes)),
-            None => "even the smallest working size does not fit; free memory".to_string(),
-        };
-        bail!(
-            "relighting this {}x{} photo at a working size of {}x{} (--max-side {}) needs about {} \
-             (network peak {} in the {stage}, over {} tokens; full-size image {}), more than the {} {whence}; {hint}, \
-             or raise --max-memory",
-            size.0,
-            size.1,
-            budget.work.0,
-            budget.work.1,
-            args.max_side,
-            gb(budget.total()),
-            gb(budget.network()),
-            budget.plan.tokens,
-            gb(budget.full),
-            gb(limit),
-        );
+        None => Ok(None),
     }
-    Ok(budget)
 }
 
 /// A spinner for a step that may take more than a second (hidden under --quiet or without a terminal).
@@ -372,45 +234,12 @@ fn spinner(ctx: &Ctx, msg: &str) -> ProgressBar {
     pb
 }
 
-/// A bar that redraws its elapsed time while a long step runs.
-fn ticking(bar: ProgressBar) -> ProgressBar {
-    if !bar.is_hidden() {
-        bar.enable_steady_tick(std::time::Duration::from_millis(250));
-    }
-    bar
-}
-
-/// Reads the photo (RGB, finite, clamped to [0, 1]) with a spinner.
-fn read_photo(ctx: &Ctx, path: &Path) -> anyhow::Result<Image> {
+/// Reads the photo (decoded once; RGB, finite, clamped to [0, 1]) with a spinner.
+fn read_photo(ctx: &Ctx, args: &Args, path: &Path) -> anyhow::Result<Photo> {
     let sp = spinner(ctx, &format!("reading {}", path.display()));
-    let photo = clamp_to_unit(pixl_core::io::read_rgb_finite(path)?, path);
+    let photo = Photo::open(path, args.focal, args.fov);
     sp.finish_and_clear();
-    Ok(photo)
-}
-
-/// The paper's source is in [0, 1]; EXR sources may exceed it. Clamped values are reported.
-fn clamp_to_unit(img: Image, path: &Path) -> Image {
-    let outside = img.data.iter().filter(|v| !(0.0..=1.0).contains(*v)).count();
-    if outside == 0 {
-        return img;
-    }
-    tracing::warn!(
-        "{}: {outside} values outside [0, 1] clamped (the network expects I_S in [0, 1])",
-        path.display()
-    );
-    img.map(|v| v.clamp(0.0, 1.0))
-}
-
-/// Planar `9 × wh × ww` C_T at the working size: area-averaged from the photo's size, or as is.
-fn ct_at_working_size(ct: &Ct, work: (usize, usize)) -> anyhow::Result<Vec<f32>> {
-    if (ct.width(), ct.height()) == work {
-        return Ok(ct.to_chw());
-    }
-    let mut out = Vec::with_capacity(9 * work.0 * work.1);
-    for group in ct.groups() {
-        out.extend(fullres::area_resize_to_chw(group, work.0, work.1)?);
-    }
-    Ok(out)
+    Ok(photo?)
 }
 
 /// Runs the network at the working size and applies its result to the full-size photo, with a
@@ -423,14 +252,10 @@ fn run_network(
     work: (usize, usize),
     device: &candle_core::Device,
 ) -> anyhow::Result<Image> {
-    let bar = ticking(ctx.progress(1, &format!("network {}x{}", work.0, work.1)));
-    let mut progress = |done: usize, total: usize, _stage: &str| {
-        bar.set_length(total as u64);
-        bar.set_position(done as u64);
-    };
-    let relit = fullres::relight_full(&net.model, photo, ct_work, work, device, &mut progress).context("relighting")?;
-    bar.finish_and_clear();
-    Ok(relit)
+    let bars = crate::ctx::Bars::new(ctx);
+    Ok(pixl_pipeline::relight::relight(
+        net, photo, ct_work, work, device, &bars,
+    )?)
 }
 
 fn write_output(ctx: &Ctx, path: &Path, img: &Image) -> anyhow::Result<()> {
@@ -464,8 +289,8 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
 fn run_with_intrinsics(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()> {
     let ct_path = args.intrinsics.as_deref().unwrap_or(Path::new(""));
     let device = crate::device::parse_device(&args.device)?;
-    let net = load_network(ctx, args.weights.as_deref(), args.dtype.into(), &device, args.int8)?;
-    let photo = read_photo(ctx, photo_path)?;
+    let net = load_network(ctx, args, &device)?;
+    let photo = read_photo(ctx, args, photo_path)?.image;
     let size = (photo.width, photo.height);
     let work = fullres::working_size(size.0, size.1, args.max_side);
     let ct = pixl_intrinsics::ct::read_ct(ct_path)?;
@@ -486,7 +311,7 @@ fn run_with_intrinsics(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Res
     }
     // Full size: the photo (f32), the encoded output, and a full-size C_T (9 f32 + its EXR decode).
     let per_px = 12 + 8 + if ct_size == size { 72 } else { 0 };
-    let budget = check_budget(args, &net, size, per_px)?;
+    let budget = check_budget(&net, size, args.max_side, per_px, max_memory(args)?)?;
     let ct_work = ct_at_working_size(&ct, budget.work)?;
     drop(ct);
     let relit = run_network(ctx, &net, photo, &ct_work, budget.work, &device)?;
@@ -529,48 +354,6 @@ fn report(
     Ok(())
 }
 
-/// Reconstruct's flags from ours, parsed by its own clap definition (so its defaults and new
-/// flags apply unchanged).
-fn reconstruct_args(args: &Args, photo: &Path, out: &Path, stride: usize) -> anyhow::Result<super::reconstruct::Args> {
-    #[derive(clap::Parser)]
-    #[command(no_binary_name = true)]
-    struct Wrap {
-        #[command(flatten)]
-        a: super::reconstruct::Args,
-    }
-    let mut argv: Vec<std::ffi::OsString> = vec!["--image".into(), photo.into(), "--out".into(), out.into()];
-    let mut flag = |name: &str, value: Option<std::ffi::OsString>| {
-        if let Some(v) = value {
-            argv.push(name.into());
-            argv.push(v);
-        }
-    };
-    flag("--depth", args.depth.as_ref().map(|p| p.into()));
-    flag("--depth-kind", args.depth_kind.as_ref().map(|s| s.into()));
-    flag("--depth-range", args.depth_range.as_ref().map(|s| s.into()));
-    flag("--fov", args.fov.map(|v| v.to_string().into()));
-    flag("--focal", args.focal.map(|v| v.to_string().into()));
-    flag("--models", args.models.models.as_ref().map(|p| p.into()));
-    flag("--stride", Some(stride.to_string().into()));
-    // The scene folder is ours (a fresh temporary folder, or --keep's, checked there).
-    argv.push("--force".into());
-    if args.models.offline {
-        argv.push("--offline".into());
-    }
-    let w = <Wrap as clap::Parser>::try_parse_from(argv).map_err(|e| {
-        anyhow::anyhow!(
-            "reconstruct: {}",
-            e.render()
-                .to_string()
-                .lines()
-                .next()
-                .unwrap_or("")
-                .trim_start_matches("error: ")
-        )
-    })?;
-    Ok(w.a)
-}
-
 /// The files `--keep` writes directly in its folder.
 const KEPT: &[&str] = &[
     "scene",
@@ -581,7 +364,46 @@ const KEPT: &[&str] = &[
     "before_after.png",
 ];
 
-/// From a photo: reconstruct → lights → render → compose → network.
+/// The photo's metric depth at its size: `--depth` (of `--depth-kind`), else Depth Anything 3.
+fn depth_of(args: &Args, photo: &Photo, ctx: &Ctx) -> anyhow::Result<pixl_render::depth::DepthMap> {
+    let Some(path) = &args.depth else {
+        let est = crate::estimators::estimate_depth(
+            photo,
+            crate::estimators::DepthModel::Da3Metric,
+            pixl_pipeline::estimators::DEFAULT_PROCESS_RES,
+            "cpu",
+            &args.models,
+            ctx,
+        )
+        .context(
+            "reconstructing the scene without --depth (pass --depth FILE with a depth map of the photo, or make \
+             Depth Anything 3's weights available: `pixl models fetch da3-metric`, or --models DIR holding them)",
+        )?;
+        let (w, h) = photo.size();
+        return Ok(pixl_render::depth::DepthMap::new(
+            w,
+            h,
+            pixl_pipeline::estimators::depth_without_sky(&est.estimate),
+        )?);
+    };
+    let kind = match args.depth_kind.as_deref() {
+        None => pixl_pipeline::depth::DepthKind::Metric,
+        Some(k) => pixl_pipeline::depth::DepthKind::parse(k)
+            .with_context(|| format!("--depth-kind {k:?}: give metric, relative or disparity"))?,
+    };
+    let how = pixl_pipeline::depth::DepthFile {
+        kind,
+        range: args
+            .depth_range
+            .as_deref()
+            .map(pixl_pipeline::depth::parse_range)
+            .transpose()?,
+        ..Default::default()
+    };
+    pixl_pipeline::depth::read_depth_file(path, &how, photo.size()).context("reconstructing the scene")
+}
+
+/// From a photo: reconstruct → lights → render → compose → network. The photo is decoded once.
 fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()> {
     // Everything that can be checked without work, first.
     let specs = args
@@ -592,6 +414,14 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
     let file_lights = args.scene.as_deref().map(read_lights).transpose()?;
     if args.preset.is_none() && specs.is_empty() && file_lights.is_none() {
         bail!("give the new lighting: --preset NAME, --light 'FLAGS' or --scene lights.toml (or --intrinsics CT.exr; see --help)");
+    }
+    if let Some(k) = &args.depth_kind {
+        if pixl_pipeline::depth::DepthKind::parse(k).is_none() {
+            bail!("--depth-kind {k:?}: give metric, relative or disparity");
+        }
+    }
+    if let Some(r) = &args.depth_range {
+        pixl_pipeline::depth::parse_range(r)?;
     }
     if let Some(dir) = &args.keep {
         let mut inputs: Vec<&Path> = vec![photo_path];
@@ -604,56 +434,33 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
         pixl_core::output::check_output_dir(dir, args.force, KEPT, &inputs)?;
     }
     let device = crate::device::parse_device(&args.device)?;
-    let net = load_network(ctx, args.weights.as_deref(), args.dtype.into(), &device, args.int8)?;
-    let photo = read_photo(ctx, photo_path)?;
-    let size = (photo.width, photo.height);
-    let budget = check_budget(args, &net, size, 12 + 8)?;
+    let net = load_network(ctx, args, &device)?;
+    let photo = read_photo(ctx, args, photo_path)?;
+    let size = photo.size();
+    let budget = check_budget(&net, size, args.max_side, 12 + 8, max_memory(args)?)?;
     let work = budget.work;
+    let bars = crate::ctx::Bars::new(ctx);
 
-    // 1. Reconstruct, into --keep DIR/scene or a folder removed at the end.
-    let mut provisional = pixl_core::output::Provisional::new();
-    let root = match &args.keep {
-        Some(dir) => {
-            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-            dir.clone()
-        }
-        None => {
-            let tmp = std::env::temp_dir().join(format!(
-                "pixl-relight-{}-{}",
-                std::process::id(),
-                std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map(|d| d.as_nanos())
-                    .unwrap_or(0)
-            ));
-            provisional.create_dir_all(&tmp)?;
-            tmp
-        }
+    // 1. Reconstruct: the mesh needs no more vertices than the render has pixels.
+    let depth = depth_of(args, &photo, ctx)?;
+    let sp = spinner(ctx, "reconstructing the scene");
+    let settings = pixl_pipeline::reconstruct::MeshSettings {
+        stride: Some(size.0.max(size.1).div_ceil(work.0.max(work.1)).max(1)),
+        ..Default::default()
     };
-    let scene_dir = root.join("scene");
-    // The mesh needs no more vertices than the render has pixels.
-    let stride = size.0.max(size.1).div_ceil(work.0.max(work.1)).max(1);
-    let rargs = reconstruct_args(args, photo_path, &scene_dir, stride)?;
-    // (Depth estimation shows its own progress.)
-    let sp = match &args.depth {
-        Some(_) => spinner(ctx, "reconstructing the scene"),
-        None => ProgressBar::hidden(),
-    };
-    let reconstructed = super::reconstruct::run(rargs, ctx);
+    let geometry = pixl_pipeline::reconstruct::reconstruct(
+        &photo,
+        &depth,
+        &pixl_pipeline::reconstruct::Maps::default(),
+        &settings,
+        &bars,
+    );
     sp.finish_and_clear();
-    reconstructed.with_context(|| {
-        if args.depth.is_none() {
-            "reconstructing the scene without --depth (pass --depth FILE with a depth map of the photo, or make \
-             Depth Anything 3's weights available: `pixl models fetch da3-metric`, or --models DIR holding them)"
-                .to_string()
-        } else {
-            "reconstructing the scene".to_string()
-        }
-    })?;
+    let geometry = geometry.context("reconstructing the scene")?;
+    drop(depth);
 
-    // 2. Lights.
-    let scene_path = scene_dir.join("scene.toml");
-    let mut scene = Scene::load(&scene_path)?;
+    // 2. Lights, on the scene in memory (its mesh and texture are not written unless --keep).
+    let mut scene = geometry.scene.clone();
     scene.lights.clear();
     if let Some(p) = &args.preset {
         apply_preset(&mut scene, p, false)?;
@@ -669,26 +476,29 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
         scene.lights.extend(lights);
     }
     scene.validate()?;
-    scene.save(&scene_path)?;
-
-    // 3. Render at the working size.
-    let opts = RenderOptions {
-        spp: args.spp,
-        width: Some(work.0 as u32),
-        height: Some(work.1 as u32),
-        seed: args.seed,
-        max_bounces: args.bounces,
+    let scene_name = match &args.keep {
+        Some(dir) => {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            let path = geometry.write(
+                &dir.join("scene"),
+                pixl_pipeline::reconstruct::MeshFormat::Glb,
+                &scene.lights,
+            )?;
+            path.display().to_string()
+        }
+        None => "the reconstructed scene".to_string(),
     };
-    let bar = ticking(ctx.progress(work.1 as u64, "rendering"));
-    let film = render(&scene, &opts, &|done, _total| bar.set_position(done as u64))
-        .with_context(|| format!("rendering {}", scene_path.display()))?;
-    bar.finish_and_clear();
-    drop(scene);
+    drop(geometry);
 
-    // 4. Compose C_T.
-    let passes = PassSet::from_exr_channels(&film.to_exr_channels(), None)?;
-    let composed = compose(&passes, &ComposeOptions::default())?;
-    drop(passes);
+    // 3. Render at the working size and compose C_T.
+    let settings = pixl_pipeline::render::RenderSettings {
+        spp: args.spp,
+        bounces: args.bounces,
+        seed: args.seed,
+    };
+    let (film, composed) = pixl_pipeline::render::render_intrinsics(&scene, work, &settings, &bars)
+        .with_context(|| format!("rendering {scene_name}"))?;
+    drop(scene);
     let ct = composed.ct;
     let mut kept = Vec::new();
     if let Some(dir) = &args.keep {
@@ -709,24 +519,22 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
     let ct_work = ct_at_working_size(&ct, work)?;
     drop(ct);
 
-    // 5. The network, applied at full size.
+    // 4. The network, applied at full size.
+    let photo = photo.image;
     let before = args
         .keep
         .as_ref()
-        .map(|_| fullres::area_resize_to_chw(&photo, work.0, work.1))
+        .map(|_| pixl_core::resample::area_resize(&photo, work.0, work.1))
         .transpose()?;
     let relit = run_network(ctx, &net, photo, &ct_work, work, &device)?;
     write_output(ctx, &args.out, &relit)?;
     if let (Some(dir), Some(before)) = (&args.keep, before) {
-        let after = fullres::area_resize_to_chw(&relit, work.0, work.1)?;
-        let a = Image::from_chw(work.0, work.1, 3, &before)?;
-        let b = Image::from_chw(work.0, work.1, 3, &after)?;
-        let pair = Image::hstack(&[&a, &b])?;
+        let after = pixl_core::resample::area_resize(&relit, work.0, work.1)?;
+        let pair = Image::hstack(&[&before, &after])?;
         let path = dir.join("before_after.png");
         pixl_core::io::write_png(&path, &pair, pixl_core::io::PngDepth::Eight)?;
         kept.push(path);
         ctx.say(format!("intermediates in {}", dir.display()));
     }
-    drop(provisional);
     report(ctx, args, &net, size, &budget, &kept)
 }

@@ -83,7 +83,7 @@ pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
     if a.json {
         return ctx.print_json(&doc);
     }
-    let f3 = super::light::fmt3;
+    let f3 = pixl_pipeline::lights::fmt3;
     let mut lines = vec![
         format!("scene {}", a.scene.display()),
         "axes: right-handed, metres, +Y up; the camera looks down its -Z (+X right, +Y up in its image)".to_string(),
@@ -132,7 +132,7 @@ pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
 }
 
 fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
-    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
+    (pixl_render::math::V3::from_arr(a) - pixl_render::math::V3::from_arr(b)).length()
 }
 
 fn color_text(l: &Light) -> String {
@@ -143,7 +143,7 @@ fn color_text(l: &Light) -> String {
 }
 
 fn light_line(l: &Light) -> String {
-    let f3 = super::light::fmt3;
+    let f3 = pixl_pipeline::lights::fmt3;
     let name = if l.name().is_empty() {
         String::new()
     } else {

@@ -54,6 +54,36 @@ pub struct Args {
     /// Open the page in the default browser.
     #[arg(long)]
     pub open: bool,
+    /// Device of the depth estimator: cpu, or cuda[:N].
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    #[command(flatten)]
+    pub models: crate::weights::WeightsArgs,
+}
+
+/// Depth Anything 3 for photos loaded without a depth map, as `pixl relight` estimates depth:
+/// `da3-metric` when its weights are on disk, else `da3-mono` (relative depth, mapped to 1-10 m).
+/// The studio never downloads (`pixl models fetch da3-metric` does); with neither on disk,
+/// `None`: photos get the labelled fallback geometry, and a note says how to get the weights.
+fn depth_estimator(args: &Args, ctx: &Ctx) -> Result<Option<std::sync::Arc<dyn pixl_studio::DepthEstimator>>> {
+    use pixl_estimate::da3::Da3Variant;
+    let hub = args.models.hub();
+    for (name, variant) in [("da3-metric", Da3Variant::Metric), ("da3-mono", Da3Variant::Mono)] {
+        let spec = pixl_estimate::hub::lookup(name)?;
+        let Some(resolved) = hub.locate(spec)? else { continue };
+        let device = crate::device::parse_device(&args.device)?;
+        let net = pixl_pipeline::estimators::Da3Depth::load(&resolved.dir, variant, spec.name, &device)?;
+        ctx.say(format!(
+            "depth of photos without a depth map: {name} ({}, from {})",
+            spec.licence, resolved.source
+        ));
+        return Ok(Some(std::sync::Arc::new(net)));
+    }
+    ctx.say(
+        "no Depth Anything 3 weights on disk (`pixl models fetch da3-metric`, or --models DIR): photos \
+         without a depth map get a labelled stand-in geometry",
+    );
+    Ok(None)
 }
 
 pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
@@ -68,7 +98,15 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     if args.size < 16 || args.size > 4096 {
         bail!("--size {} must be between 16 and 4096", args.size);
     }
+    let estimator = match (&args.input, &args.depth) {
+        (Some(i), None) if !matches!(pixl_core::io::extension(i).as_str(), "toml" | "json") => {
+            depth_estimator(&args, ctx)?
+        }
+        (None, _) => depth_estimator(&args, ctx)?,
+        _ => None,
+    };
     let config = StudioConfig {
+        estimator,
         work_side: args.size,
         stages: vec![
             pixl_studio::Stage {

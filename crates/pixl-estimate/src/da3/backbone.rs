@@ -23,8 +23,9 @@ use super::config::Da3Config;
 use super::resize::bicubic_scale;
 use candle_core::{DType, Module, Result, Tensor};
 use candle_nn::VarBuilder;
-use pixl_nn::fused::{add_scaled_rows, attention_qkv, bias_act_rows, Act, Vector};
-use pixl_nn::{LayerNorm, Linear};
+use pixl_nn::fused::{bias_act_rows, Act, Vector};
+use pixl_nn::vit::{Block, BlockConfig};
+use pixl_nn::LayerNorm;
 
 /// LayerNorm eps of the blocks (`Block(ln_eps=1e-6)`).
 pub const BLOCK_LN_EPS: f64 = 1e-6;
@@ -33,86 +34,14 @@ pub const FINAL_LN_EPS: f64 = 1e-5;
 /// `DinoVisionTransformer.interpolate_offset`.
 pub const INTERPOLATE_OFFSET: f64 = 0.1;
 
-/// Multi-head self-attention with a fused `qkv` projection.
-#[derive(Clone, Debug)]
-struct Attention {
-    qkv: Linear,
-    proj: Linear,
-    heads: usize,
-}
-
-impl Attention {
-    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let qkv = self.qkv.forward_act(xs, Act::None)?; // (B, N, 3C)
-        self.proj.forward_act(&attention_qkv(&qkv, self.heads)?, Act::None)
-    }
-}
-
-/// `Linear – GELU(erf) – Linear`.
-#[derive(Clone, Debug)]
-struct Mlp {
-    fc1: Linear,
-    fc2: Linear,
-}
-
-impl Mlp {
-    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        self.fc2.forward_act(&self.fc1.forward_act(xs, Act::Gelu)?, Act::None)
-    }
-}
-
-/// Pre-norm transformer block with LayerScale.
-#[derive(Clone, Debug)]
-struct Block {
-    norm1: LayerNorm,
-    attn: Attention,
-    ls1: Vector,
-    norm2: LayerNorm,
-    mlp: Mlp,
-    ls2: Vector,
-}
-
-impl Block {
-    fn new(cfg: &Da3Config, vb: VarBuilder) -> Result<Self> {
-        let c = cfg.net().embed_dim;
-        let hidden = cfg.mlp_hidden();
-        Ok(Self {
-            norm1: LayerNorm::new(c, BLOCK_LN_EPS, vb.pp("norm1"))?,
-            attn: Attention {
-                qkv: Linear::load(c, 3 * c, vb.pp("attn").pp("qkv"))?,
-                proj: Linear::load(c, c, vb.pp("attn").pp("proj"))?,
-                heads: cfg.net().num_heads,
-            },
-            ls1: Vector::new(vb.pp("ls1").get(c, "gamma")?)?,
-            norm2: LayerNorm::new(c, BLOCK_LN_EPS, vb.pp("norm2"))?,
-            mlp: Mlp {
-                fc1: Linear::load(c, hidden, vb.pp("mlp").pp("fc1"))?,
-                fc2: Linear::load(hidden, c, vb.pp("mlp").pp("fc2"))?,
-            },
-            ls2: Vector::new(vb.pp("ls2").get(c, "gamma")?)?,
-        })
-    }
-
-    /// `qkv`, `proj`, `fc1`, `fc2` in 8 bits where the CPU allows; returns how many.
-    fn quantize_int8(&mut self) -> Result<usize> {
-        let layers = [
-            &mut self.attn.qkv,
-            &mut self.attn.proj,
-            &mut self.mlp.fc1,
-            &mut self.mlp.fc2,
-        ];
-        let mut n = 0;
-        for l in layers {
-            n += usize::from(l.quantize_int8()?);
-        }
-        Ok(n)
-    }
-
-    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let a = self.attn.forward(&self.norm1.forward(xs)?)?;
-        let xs = add_scaled_rows(xs, &a, &self.ls1)?;
-        let m = self.mlp.forward(&self.norm2.forward(&xs)?)?;
-        add_scaled_rows(&xs, &m, &self.ls2)
+/// The blocks' shape: DINOv2's pre-norm block with LayerScale ([`pixl_nn::vit::Block`]).
+fn block_config(cfg: &Da3Config) -> BlockConfig {
+    BlockConfig {
+        dim: cfg.net().embed_dim,
+        heads: cfg.net().num_heads,
+        mlp_hidden: cfg.mlp_hidden(),
+        norm_eps: BLOCK_LN_EPS,
+        layer_scale: true,
     }
 }
 
@@ -151,8 +80,9 @@ impl Backbone {
             .contiguous()?;
         let patch_b = Vector::new(proj.get(c, "bias")?)?;
         let last = n.out_layers.iter().copied().max().unwrap_or(0);
+        let block_cfg = block_config(cfg);
         let blocks = (0..=last)
-            .map(|i| Block::new(cfg, vb.pp("blocks").pp(i)))
+            .map(|i| Block::new(&block_cfg, vb.pp("blocks").pp(i)))
             .collect::<Result<Vec<_>>>()?;
         Ok(Self {
             patch_w,
@@ -240,7 +170,7 @@ impl Backbone {
         // As the official `blocks_to_take`: outputs in block order.
         let mut feats = Vec::with_capacity(4);
         for (i, block) in self.blocks.iter().enumerate() {
-            xs = block.forward(&xs)?;
+            xs = block.forward(&xs, None)?;
             if self.out_layers.contains(&i) {
                 let n = xs.dim(1)? - 1;
                 feats.push(self.norm.forward(&xs.narrow(1, 1, n)?)?);

@@ -20,11 +20,16 @@
 //!
 //! The two final 3×3 convs read the same map and are evaluated as one 64-channel conv (their
 //! weights concatenated at load time), the two 1×1 convs as one block-diagonal matmul.
+//!
+//! Steps 2 to 5 are the DPT stages shared with the PIXLRelight head ([`pixl_nn::dpt`]), built
+//! here from `HeadConv` and [`bilinear_align_corners`]; the projections read the backbone's
+//! tokens as rows, which the transposed convs of step 2 take as they are.
 use super::config::Da3Config;
 use super::resize::bilinear_align_corners;
 use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
 use pixl_nn::conv3x3::Conv3x3;
+use pixl_nn::dpt::{ConvSpec, DptConv, DptFusion, DptReassemble};
 use pixl_nn::fused::{self, bias_act_channels, bias_act_rows, Act, Vector};
 
 /// A 1×1 conv as a matrix product: weight `(out, in)`, bias `(out)`.
@@ -43,11 +48,11 @@ impl Conv1x1 {
     }
 
     /// `(B, C, H, W)` → `(B, O, H, W)`.
-    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+    fn forward(&self, xs: &Tensor, act: Act) -> Result<Tensor> {
         let (b, c, h, w) = xs.dims4()?;
         let o = self.weight.dim(0)?;
         let ys = self.weight.broadcast_left(b)?.matmul(&xs.reshape((b, c, h * w))?)?;
-        bias_act_channels(&ys, &self.bias, Act::None)?.reshape((b, o, h, w))
+        bias_act_channels(&ys, &self.bias, act)?.reshape((b, o, h, w))
     }
 
     /// Tokens `(B, N, C)` → `(B·N, O)` rows.
@@ -58,86 +63,37 @@ impl Conv1x1 {
     }
 }
 
-/// `ConvTranspose2d(cin, cout, k, stride=k)` on rows `(B·h·w, cin)`: one matmul, then a pixel
-/// shuffle. `out[b, o, i·k+u, j·k+v] = bias[o] + Σ_c x[b, c, i, j] · w[c, o, u, v]`.
+/// The head's convolutions as the shared DPT stages ([`pixl_nn::dpt`]) take them: 3×3 ones in
+/// [`Conv3x3`] (weights arranged for its kernels at load time), 1×1 ones as a matrix product.
 #[derive(Clone, Debug)]
-struct ConvTransposeK {
-    /// `(cin, cout·k·k)`.
-    weight: Tensor,
-    bias: Vector,
-    k: usize,
+enum HeadConv {
+    K3(Conv3x3),
+    K1(Conv1x1),
 }
 
-impl ConvTransposeK {
-    fn new(c: usize, k: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            weight: vb.get((c, c, k, k), "weight")?.reshape((c, c * k * k))?,
-            bias: Vector::new(vb.get(c, "bias")?)?,
+impl DptConv for HeadConv {
+    fn load(spec: ConvSpec, vb: VarBuilder) -> Result<Self> {
+        let ConvSpec {
+            cin,
+            cout,
             k,
-        })
+            stride,
+            bias,
+        } = spec;
+        match (k, stride, bias) {
+            (3, _, _) => Ok(Self::K3(Conv3x3::new(cin, cout, stride, bias, vb)?)),
+            (1, 1, true) => Ok(Self::K1(Conv1x1::new(cin, cout, vb)?)),
+            _ => candle_core::bail!("DA3 head: no {k}x{k} stride-{stride} convolution (bias: {bias})"),
+        }
     }
 
-    fn forward_rows(&self, rows: &Tensor, b: usize, h: usize, w: usize) -> Result<Tensor> {
-        let k = self.k;
-        let cout = self.bias.len();
-        let ys = rows.matmul(&self.weight)?; // (B·h·w, cout·k·k)
-        let ys = ys.reshape((b, h, w, cout, k, k))?.permute((0, 3, 1, 4, 2, 5))?;
-        let ys = ys.contiguous()?.reshape((b, cout, h * k, w * k))?;
-        bias_act_channels(&ys, &self.bias, Act::None)
-    }
-}
-
-/// `x + conv2(relu(conv1(relu(x))))`.
-#[derive(Clone, Debug)]
-struct ResidualConvUnit {
-    conv1: Conv3x3,
-    conv2: Conv3x3,
-}
-
-impl ResidualConvUnit {
-    fn new(f: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            conv1: Conv3x3::new(f, f, 1, true, vb.pp("conv1"))?,
-            conv2: Conv3x3::new(f, f, 1, true, vb.pp("conv2"))?,
-        })
-    }
-
-    fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        let ys = self.conv1.forward(&fused::relu(xs)?, Act::Relu)?;
-        self.conv2.forward_residual(&ys, xs)
-    }
-}
-
-/// Official `FeatureFusionBlock` (`align_corners=True`, no expansion).
-#[derive(Clone, Debug)]
-struct FusionBlock {
-    res_conf_unit1: Option<ResidualConvUnit>,
-    res_conf_unit2: ResidualConvUnit,
-    out_conv: Conv1x1,
-}
-
-impl FusionBlock {
-    fn new(f: usize, has_residual: bool, vb: VarBuilder) -> Result<Self> {
-        let res_conf_unit1 = if has_residual {
-            Some(ResidualConvUnit::new(f, vb.pp("resConfUnit1"))?)
-        } else {
-            None
-        };
-        Ok(Self {
-            res_conf_unit1,
-            res_conf_unit2: ResidualConvUnit::new(f, vb.pp("resConfUnit2"))?,
-            out_conv: Conv1x1::new(f, f, vb.pp("out_conv"))?,
-        })
-    }
-
-    fn forward(&self, path: &Tensor, lateral: Option<&Tensor>, size: (usize, usize)) -> Result<Tensor> {
-        let xs = match (&self.res_conf_unit1, lateral) {
-            (Some(rcu), Some(l)) => fused::add_act(path, &rcu.forward(l)?, Act::None)?,
-            _ => path.clone(),
-        };
-        let xs = self.res_conf_unit2.forward(&xs)?;
-        let xs = bilinear_align_corners(&xs, size.0, size.1)?;
-        self.out_conv.forward(&xs)
+    fn forward_fused(&self, xs: &Tensor, input_relu: bool, residual: Option<&Tensor>, act: Act) -> Result<Tensor> {
+        match self {
+            Self::K3(conv) if input_relu => conv.apply(&fused::relu(xs)?, residual, act),
+            Self::K3(conv) => conv.apply(xs, residual, act),
+            Self::K1(conv) if !input_relu && residual.is_none() => conv.forward(xs, act),
+            Self::K1(_) => candle_core::bail!("DA3 head: a 1x1 convolution takes no input ReLU or skip connection"),
+        }
     }
 }
 
@@ -153,13 +109,8 @@ enum SkyActivation {
 #[derive(Clone, Debug)]
 pub struct DptHead {
     projects: Vec<Conv1x1>,
-    resize0: ConvTransposeK,
-    resize1: ConvTransposeK,
-    resize3: Conv3x3,
-    layer_rn: Vec<Conv3x3>,
-    /// `refinenets[i]` is `refinenet{i+1}`.
-    refinenets: Vec<FusionBlock>,
-    output_conv1: Conv3x3,
+    resize_layers: DptReassemble<HeadConv>,
+    scratch: DptFusion<HeadConv>,
     /// `output_conv2.0` and `sky_output_conv2.0` stacked: `(64, features/2, 3, 3)`.
     final3x3: Conv3x3,
     /// `output_conv2.2` and `sky_output_conv2.2` as a block-diagonal `(2, 64)` matrix.
@@ -177,14 +128,7 @@ impl DptHead {
         let projects = (0..4)
             .map(|i| Conv1x1::new(c, oc[i], vb.pp("projects").pp(i)))
             .collect::<Result<Vec<_>>>()?;
-        let vr = vb.pp("resize_layers");
         let s = vb.pp("scratch");
-        let layer_rn = (0..4)
-            .map(|i| Conv3x3::new(oc[i], f, 1, false, s.pp(format!("layer{}_rn", i + 1))))
-            .collect::<Result<Vec<_>>>()?;
-        let refinenets = (0..4)
-            .map(|i| FusionBlock::new(f, i < 3, s.pp(format!("refinenet{}", i + 1))))
-            .collect::<Result<Vec<_>>>()?;
         let half = f / 2;
         let (d, k) = (s.pp("output_conv2"), s.pp("sky_output_conv2"));
         let w3 = Tensor::cat(
@@ -208,12 +152,8 @@ impl DptHead {
         };
         Ok(Self {
             projects,
-            resize0: ConvTransposeK::new(oc[0], 4, vr.pp(0))?,
-            resize1: ConvTransposeK::new(oc[1], 2, vr.pp(1))?,
-            resize3: Conv3x3::new(oc[3], oc[3], 2, true, vr.pp(3))?,
-            layer_rn,
-            refinenets,
-            output_conv1: Conv3x3::new(f, half, 1, true, s.pp("output_conv1"))?,
+            resize_layers: DptReassemble::new(oc, vb.pp("resize_layers"))?,
+            scratch: DptFusion::new(oc, f, bilinear_align_corners, s)?,
             final3x3,
             final1x1,
             final1x1_bias,
@@ -228,29 +168,12 @@ impl DptHead {
             candle_core::bail!("DPT head expects 4 features, got {}", feats.len());
         }
         let b = feats[0].dim(0)?;
-        let mut laterals = Vec::with_capacity(4);
-        for (i, xs) in feats.iter().enumerate() {
-            let rows = self.projects[i].forward_rows(xs)?; // (B·N, O)
-            let o = rows.dim(1)?;
-            let grid = || -> Result<Tensor> { rows.reshape((b, gh, gw, o))?.permute((0, 3, 1, 2))?.contiguous() };
-            let xs = match i {
-                0 => self.resize0.forward_rows(&rows, b, gh, gw)?,
-                1 => self.resize1.forward_rows(&rows, b, gh, gw)?,
-                2 => grid()?,
-                _ => self.resize3.forward(&grid()?, Act::None)?,
-            };
-            laterals.push(self.layer_rn[i].forward(&xs, Act::None)?);
-        }
-        let size = |t: &Tensor| -> Result<(usize, usize)> { Ok((t.dim(2)?, t.dim(3)?)) };
-        let path = self.refinenets[3].forward(&laterals[3], None, size(&laterals[2])?)?;
-        let path = self.refinenets[2].forward(&path, Some(&laterals[2]), size(&laterals[1])?)?;
-        let path = self.refinenets[1].forward(&path, Some(&laterals[1]), size(&laterals[0])?)?;
-        let (h1, w1) = size(&laterals[0])?;
-        let path = self.refinenets[0].forward(&path, Some(&laterals[0]), (2 * h1, 2 * w1))?;
-
+        let layers = feats.iter().zip(&self.projects).enumerate().map(|(i, (xs, project))| {
+            let rows = project.forward_rows(xs)?; // (B·N, O)
+            self.resize_layers.forward_rows(i, &rows, b, gh, gw)
+        });
         let (h, w) = (gh * self.patch, gw * self.patch);
-        let out = self.output_conv1.forward(&path, Act::None)?;
-        let out = bilinear_align_corners(&out, h, w)?;
+        let out = self.scratch.forward(layers, h, w)?;
         let hidden = self.final3x3.forward(&out, Act::Relu)?; // (B, 64, h, w)
         let logits = self
             .final1x1

@@ -1,9 +1,9 @@
-//! The Blender bridge (issue 4, part 5): a [`Scene`] → a Blender Python script that rebuilds it
+//! The Blender bridge: a [`Scene`] → a Blender Python script that rebuilds it
 //! and renders Cycles' passes into a multilayer EXR.
 //!
 //! [`export_blender`] writes `scene.py` and, beside it, a data folder `scene_data/` holding
 //! every object's triangles as binary PLY (exactly the tessellation the native renderer uses, from
-//! [`crate::geometry::shape_mesh`]) and copies of every texture, so the script + folder can move
+//! [`crate::trace::geometry::shape_mesh`]) and copies of every texture, so the script + folder can move
 //! together. The script needs nothing but `bpy` (and the numpy it ships with):
 //!
 //! ```text
@@ -43,7 +43,7 @@ pub enum BlenderError {
     #[error(transparent)]
     Render(#[from] crate::RenderError),
     #[error(transparent)]
-    Mesh(#[from] crate::export::MeshIoError),
+    Mesh(#[from] crate::io::export::MeshIoError),
     #[error("{path}: {reason}")]
     Invalid { path: PathBuf, reason: String },
 }
@@ -132,9 +132,9 @@ fn describe(scene: &Scene, data: &Path) -> Result<(Value, usize, usize), Blender
     let mut textures = 0;
     let mut objects = Vec::new();
     for (i, obj) in scene.objects.iter().enumerate() {
-        let mesh = crate::geometry::shape_mesh(scene, &obj.shape)?;
+        let mesh = crate::trace::geometry::shape_mesh(scene, &obj.shape)?;
         let file = format!("obj_{i}.ply");
-        crate::export::ply::write_ply(&data.join(&file), &mesh)?;
+        crate::io::export::ply::write_ply(&data.join(&file), &mesh)?;
         let m = &obj.material;
         let mut tex = |p: &Option<PathBuf>| -> Result<Value, BlenderError> {
             Ok(match p {

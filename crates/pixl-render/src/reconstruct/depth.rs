@@ -1,16 +1,16 @@
-//! Depth map + pinhole intrinsics → a textured triangle grid (issue 4, part 2; paper §3.4).
+//! Depth map + pinhole intrinsics → a textured triangle grid (paper §3.4).
 //!
 //! # Conventions
 //! - **Camera space** is right-handed, metres: the camera sits at the origin looking down **−Z**,
 //!   **+X** is image right and **+Y** image up (Blender's and glTF's camera convention, and the
-//!   scene's camera in `scene.rs`).
+//!   scene's camera in [`crate::scene`]).
 //! - **Depth is z-depth**: the distance along −Z (the optical axis), not along the ray, as in
 //!   Cycles' Depth pass. A pixel with depth `d` unprojects to `z = −d`.
 //! - **Pixels**: the image spans `[0, W] × [0, H]` in pixel units with `y` growing downwards;
 //!   pixel `(x, y)` is sampled at its centre `(x + ½, y + ½)`. The principal point is the image
 //!   centre `(W/2, H/2)`, pixels are square, so `f_x = f_y = f` with `f = (H/2) / tan(fov_y/2)`:
 //!   `X = (x + ½ − W/2) · d / f`, `Y = −(y + ½ − H/2) · d / f`, `Z = −d`.
-//! - **UVs**: `u = (x + ½)/W`, `v = (y + ½)/H` with `v = 0` at the top row (see [`crate::mesh`]),
+//! - **UVs**: `u = (x + ½)/W`, `v = (y + ½)/H` with `v = 0` at the top row (see [`crate::scene::mesh`]),
 //!   so the photo (or an albedo map of the same size) is the mesh's texture, pixel for pixel.
 //! - **Triangles**: each quad of neighbouring samples gives two triangles, counter-clockwise seen
 //!   from the camera (their geometric normal points towards +Z, at the camera). A triangle is
@@ -25,7 +25,7 @@
 //!   triangles are cut). 8-bit PNGs are refused.
 //! - NumPy `.npy` (v1–v3): little-endian `float32`, `float64` (metres) or `uint16` (× `depth_scale`),
 //!   C order, shape `(H, W)` or `(H, W, 1)`.
-use crate::mesh::Mesh;
+use crate::scene::mesh::Mesh;
 use pixl_core::Image;
 use std::path::{Path, PathBuf};
 

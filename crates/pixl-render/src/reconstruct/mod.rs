@@ -1,3 +1,16 @@
+//! Scenes made from a photo, and lights placed in them (paper §3.4, §4.2):
+//! - [`depth`]: a depth map + pinhole intrinsics → a textured triangle grid (the mesh of
+//!   `pixl reconstruct`);
+//! - this module: [`coarse_scene`] and [`coarse_scene_textured`], the coarse scene of a source
+//!   render (below);
+//! - [`placement`]: lights placed as a person describes them (at a pixel of the photo, from a
+//!   side, at an angle);
+//! - [`presets`]: the paper's five lighting presets, placed relative to the scene's bounds.
+//!
+//! It builds [`Scene`]s and reads the tracer's [`Film`] and geometry (to place lights on what a
+//! pixel sees); nothing in the tracer depends on it.
+//!
+//! # The coarse scene
 //! The coarse scene of the paper's inference (§3.4), built from a render of the *source*: its
 //! `Depth` pass becomes a triangle mesh in world space (through the camera; cut at depth
 //! discontinuities by [`MeshOptions`]' defaults; reaching the frame's edges) and its `DiffCol`
@@ -12,11 +25,15 @@
 //! source then sit in the "albedo", as they do with a weak albedo estimator.
 //!
 //! Used by `pixl demo` and by `pixl synth --coarse`, which evaluates the network in this setting.
-use crate::depth::{depth_to_mesh, DepthMap, Intrinsics, MeshOptions};
 use crate::error::{RenderError, Result};
-use crate::film::Film;
+use crate::reconstruct::depth::{depth_to_mesh, DepthMap, Intrinsics, MeshOptions};
 use crate::scene::{Material, Object, Scene, Shape, Transform};
+use crate::trace::film::Film;
 use std::path::Path;
+
+pub mod depth;
+pub mod placement;
+pub mod presets;
 
 /// The one material a coarse scene gets when no material estimator is at hand: a mid-rough
 /// dielectric (roughness 0.5, Blender's default specular), base colour from the albedo texture.
@@ -66,7 +83,8 @@ pub fn coarse_scene_textured(
         message: e.to_string(),
     })?;
     let (w, h) = (depth.width, depth.height);
-    let depth_error = |e: crate::depth::DepthError| RenderError::Options(format!("coarse reconstruction: {e}"));
+    let depth_error =
+        |e: crate::reconstruct::depth::DepthError| RenderError::Options(format!("coarse reconstruction: {e}"));
     let intr = Intrinsics::from_focal_px(w, h, scene.camera.focal_for_height(h as u32) as f64).map_err(depth_error)?;
     let depth_map = DepthMap::new(w, h, depth.data.clone()).map_err(depth_error)?;
     let opts = MeshOptions {
@@ -75,7 +93,7 @@ pub fn coarse_scene_textured(
     };
     let mesh = depth_to_mesh(&depth_map, &intr, None, &opts).map_err(depth_error)?;
     let mesh_path = dir.join("mesh.ply");
-    crate::export::ply::write_ply(&mesh_path, &mesh).map_err(|e| RenderError::Write {
+    crate::io::export::ply::write_ply(&mesh_path, &mesh).map_err(|e| RenderError::Write {
         path: mesh_path.clone(),
         message: e.to_string(),
     })?;
@@ -112,8 +130,8 @@ pub fn coarse_scene_textured(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::integrator::{render, RenderOptions};
     use crate::scene::{Camera, Color, Light, World};
+    use crate::trace::integrator::{render, RenderOptions};
 
     /// A uniform diffuse wall (no specular coat) filling the view, lit by a sun and a constant
     /// world — its coarse scene (a planar depth mesh with the DiffCol texture and the wall's

@@ -21,13 +21,13 @@
 //!   how far along that normal a light "at the pixel" is pushed off the surface.
 //! - [`power_for_irradiance`]: the power that gives irradiance `E` (W/m²) at distance `d` on a
 //!   surface facing the light (point and spot `4π E d²`, area `π E d²` on its axis, sun `E`).
-use crate::bvh::Ray;
-use crate::camera::CameraRays;
 use crate::error::{RenderError, Result};
-use crate::geometry::Geometry;
 use crate::math::V3;
-use crate::presets::scene_bounds;
+use crate::reconstruct::presets::scene_bounds;
 use crate::scene::Scene;
+use crate::trace::bvh::Ray;
+use crate::trace::camera::CameraRays;
+use crate::trace::geometry::Geometry;
 
 /// The six directions a person names, as (azimuth, elevation) in degrees.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

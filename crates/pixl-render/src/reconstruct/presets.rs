@@ -16,9 +16,9 @@
 //! | `soft-frontal-sun` | sun, 5500 K, from behind and above the camera (travelling `fwd − 0.6·up`), 15° wide, 3 W/m² |
 //! | `warm-interior-sun` | sun, 3500 K, low and from the side (travelling `−0.9·right − 0.45·up + 0.3·fwd`), 2° wide, 5 W/m² |
 use crate::error::{RenderError, Result};
-use crate::geometry::shape_mesh;
 use crate::math::V3;
 use crate::scene::{Color, Light, Scene};
+use crate::trace::geometry::shape_mesh;
 
 /// The preset names, in the paper's order.
 pub const PRESETS: &[&str] = &[

@@ -1,7 +1,7 @@
 //! Triangle meshes: positions, per-vertex normals and UVs, and triangle indices.
 //!
 //! Coordinates are right-handed, metres, with the camera convention of [`crate`]'s scene
-//! (see `scene.rs`). UVs are in [0, 1] with `v = 0` at the *top* row of the texture image.
+//! (see [`crate::scene`]). UVs are in [0, 1] with `v = 0` at the *top* row of the texture image.
 
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Mesh {

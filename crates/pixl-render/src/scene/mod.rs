@@ -3,6 +3,12 @@
 //! (chosen by the file extension, `.toml` or `.json`); paths inside a scene file are relative to
 //! the file's directory.
 //!
+//! This folder holds the scene and what it is made of; it uses nothing of the crate but its error
+//! type (the tracer, the reconstruction and the exporters all read it):
+//! - this module: [`Scene`] and its parts, their serde format, loading, saving and validation;
+//! - [`color`]: blackbody temperature → linear RGB, and luminance;
+//! - [`mesh`]: triangle meshes (positions, normals, UVs), as mesh files and depth maps give them.
+//!
 //! # Coordinate conventions
 //! - World space is right-handed, in metres, **+Y up** (OpenGL / glTF convention). The Blender
 //!   bridge maps it to Blender's Z-up world by `(x, y, z) ↦ (x, −z, y)` (a +90° rotation about X,
@@ -42,7 +48,7 @@
 //!   24 mm sensor height, aperture radius `lens / (2 · f-stop)` as in Cycles (see [`Dof`]).
 //!
 //! Colours are linear Rec.709 RGB triples (`[1.0, 0.9, 0.8]`) or a blackbody temperature
-//! (`{ kelvin = 3200 }`, see [`crate::color::blackbody`]).
+//! (`{ kelvin = 3200 }`, see [`crate::scene::color::blackbody`]).
 //!
 //! # Example (TOML)
 //! ```toml
@@ -74,10 +80,13 @@
 //! color = [0.05, 0.05, 0.08]
 //! strength = 1.0
 //! ```
-use crate::color::blackbody;
 use crate::error::{RenderError, Result};
+use color::blackbody;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+
+pub mod color;
+pub mod mesh;
 
 /// Current scene-format version (written by [`Scene::save`]).
 pub const SCENE_VERSION: u32 = 1;
@@ -99,6 +108,54 @@ pub struct Scene {
     /// scenes parsed from strings). Not serialised.
     #[serde(skip)]
     pub base_dir: PathBuf,
+    /// Meshes and images held in memory, looked up by the paths the objects name before any
+    /// file is read: a scene built in memory renders without touching the disk. Not serialised.
+    #[serde(skip)]
+    pub assets: Assets,
+}
+
+/// Meshes and images a [`Scene`] holds in memory, keyed by the path (as written in the scene)
+/// that names them. An image's key decides its encoding as a file's name would: `.exr` is
+/// linear, anything else sRGB-encoded (colour textures) or as stored (scalar textures).
+#[derive(Clone, Default)]
+pub struct Assets {
+    pub meshes: std::collections::HashMap<PathBuf, std::sync::Arc<mesh::Mesh>>,
+    pub images: std::collections::HashMap<PathBuf, std::sync::Arc<pixl_core::Image>>,
+}
+
+impl Assets {
+    pub fn is_empty(&self) -> bool {
+        self.meshes.is_empty() && self.images.is_empty()
+    }
+}
+
+impl std::fmt::Debug for Assets {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let keys = |m: Vec<&PathBuf>| {
+            let mut v: Vec<String> = m.into_iter().map(|p| p.display().to_string()).collect();
+            v.sort();
+            v
+        };
+        f.debug_struct("Assets")
+            .field("meshes", &keys(self.meshes.keys().collect()))
+            .field("images", &keys(self.images.keys().collect()))
+            .finish()
+    }
+}
+
+/// Equal when they hold the same keys with equal contents.
+impl PartialEq for Assets {
+    fn eq(&self, other: &Self) -> bool {
+        fn same<T: PartialEq>(
+            a: &std::collections::HashMap<PathBuf, std::sync::Arc<T>>,
+            b: &std::collections::HashMap<PathBuf, std::sync::Arc<T>>,
+        ) -> bool {
+            a.len() == b.len()
+                && a.iter()
+                    .all(|(k, v)| b.get(k).is_some_and(|w| std::sync::Arc::ptr_eq(v, w) || **v == **w))
+        }
+        same(&self.meshes, &other.meshes) && same(&self.images, &other.images)
+    }
 }
 
 fn default_version() -> u32 {
@@ -816,6 +873,7 @@ impl Scene {
             objects: Vec::new(),
             lights: Vec::new(),
             base_dir: PathBuf::from("."),
+            assets: Assets::default(),
         }
     }
 
@@ -1047,7 +1105,7 @@ impl Scene {
     pub fn validate_files_at(&self, path: &Path) -> Result<()> {
         let check = |p: &Path, what: String| {
             let full = self.resolve(p);
-            if full.is_file() {
+            if full.is_file() || self.assets.meshes.contains_key(p) || self.assets.images.contains_key(p) {
                 Ok(())
             } else {
                 Err(RenderError::Invalid {

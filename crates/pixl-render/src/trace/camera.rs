@@ -7,10 +7,10 @@
 //! of its own two uniforms) towards the point where the pinhole ray of `p` crosses the plane in
 //! focus (camera depth `focus_distance`). So that plane is imaged sharply, and a point at depth
 //! `z` is seen from pixel positions spread over a disk of radius `f·A·|1/focus − 1/z|` pixels.
-use crate::bvh::Ray;
 use crate::math::V3;
-use crate::sampling::concentric_disk;
 use crate::scene::Camera;
+use crate::trace::bvh::Ray;
+use crate::trace::sampling::concentric_disk;
 
 #[derive(Clone, Copy, Debug)]
 pub struct CameraRays {

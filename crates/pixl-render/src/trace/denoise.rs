@@ -16,7 +16,7 @@
 //! walls and floors. It is biased (a median is not a mean; curved surfaces lose a little shading
 //! contrast) and meant for images that are looked at or learnt from, never for the passes C_T is
 //! composed from. `BENCHMARKS.md` measures it on the synthetic scenes it serves.
-use crate::film::Film;
+use crate::trace::film::Film;
 use pixl_core::passes::{self, Pass};
 use pixl_core::Image;
 use rayon::prelude::*;
@@ -187,8 +187,8 @@ mod tests {
     /// wall, lit evenly, keeps both sides' values exactly (the window sees only its surface).
     #[test]
     fn keeps_a_depth_edge() {
-        use crate::film::PixelSum;
         use crate::math::V3;
+        use crate::trace::film::PixelSum;
         let (w, h) = (12usize, 8usize);
         let sums: Vec<PixelSum> = (0..w * h)
             .map(|p| {

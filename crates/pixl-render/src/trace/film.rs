@@ -2,7 +2,7 @@
 //! [`pixl_core::passes`]).
 //!
 //! - `DiffCol`, `GlossCol`, `TransCol`: the albedo of the lobes of each kind at the first camera
-//!   hit for the view direction, as Cycles' `bsdf_albedo` (see [`crate::material`]): diffuse
+//!   hit for the view direction, as Cycles' `bsdf_albedo` (see [`crate::trace::material`]): diffuse
 //!   `base·(1−metallic)·(1−transmission)·(1 − A_spec/w)` (the base under the specular coat of
 //!   albedo `A_spec`); glossy the energy-compensated, Fresnel-weighted albedos of the metal and
 //!   dielectric GGX lobes plus the glass's Fresnel reflectance; transmission

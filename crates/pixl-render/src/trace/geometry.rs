@@ -5,14 +5,14 @@
 //! analytic smooth normals; `cuboid` has flat faces and outward normals; `quad` lies in the XY
 //! plane facing +Z with UV `(0, 0)` at its `(−x, +y)` corner. Normals are transformed by the
 //! inverse transpose of the object matrix.
-use crate::bvh::{Bvh, Hit, Ray, RayPack, Tri};
 use crate::error::{RenderError, Result};
-use crate::material::glass_albedo::GlassTables;
-use crate::material::Coat;
 use crate::math::V3;
-use crate::mesh::Mesh;
+use crate::scene::mesh::Mesh;
 use crate::scene::{Scene, Shape};
-use crate::texture::Texture;
+use crate::trace::bvh::{Bvh, Hit, Ray, RayPack, Tri};
+use crate::trace::material::glass_albedo::GlassTables;
+use crate::trace::material::Coat;
+use crate::trace::texture::Texture;
 use rayon::prelude::*;
 use std::f32::consts::PI;
 
@@ -76,9 +76,12 @@ pub struct SurfaceHit {
 /// The tessellated mesh of one object shape, in object space.
 pub fn shape_mesh(scene: &Scene, shape: &Shape) -> Result<Mesh> {
     Ok(match shape {
+        Shape::Mesh { path } if scene.assets.meshes.contains_key(path) => {
+            scene.assets.meshes.get(path).map(|m| (**m).clone()).unwrap_or_default()
+        }
         Shape::Mesh { path } => {
             let full = scene.resolve(path);
-            crate::export::load_mesh(&full).map_err(|e| RenderError::Invalid {
+            crate::io::export::load_mesh(&full).map_err(|e| RenderError::Invalid {
                 path: full.clone(),
                 message: e.to_string(),
             })?
@@ -223,18 +226,22 @@ fn normal_matrix(m: &[[f32; 4]; 4]) -> [[f32; 3]; 3] {
 
 /// The resolved material of an object (textures loaded).
 pub fn resolve_material(scene: &Scene, m: &crate::scene::Material) -> Result<MaterialData> {
+    // An image the scene holds in memory first, else the file.
     let load = |p: &Option<std::path::PathBuf>, color: bool| -> Result<Option<Texture>> {
-        match p {
-            None => Ok(None),
-            Some(p) => {
-                let full = scene.resolve(p);
-                Ok(Some(if color {
-                    Texture::load_color(&full)?
-                } else {
-                    Texture::load_scalar(&full)?
-                }))
-            }
+        let Some(p) = p else { return Ok(None) };
+        if let Some(img) = scene.assets.images.get(p) {
+            return Ok(Some(if color {
+                Texture::color(img, pixl_core::io::extension(p) != "exr")
+            } else {
+                Texture::scalar(img)
+            }));
         }
+        let full = scene.resolve(p);
+        Ok(Some(if color {
+            Texture::load_color(&full)?
+        } else {
+            Texture::load_scalar(&full)?
+        }))
     };
     Ok(MaterialData {
         base: V3::from_arr(m.base_color.rgb()),
@@ -244,7 +251,10 @@ pub fn resolve_material(scene: &Scene, m: &crate::scene::Material) -> Result<Mat
         metallic: m.metallic,
         metallic_tex: load(&m.metallic_texture, false)?,
         normal_tex: match &m.normal_texture {
-            Some(p) => Some(Texture::load_data(&scene.resolve(p))?),
+            Some(p) => Some(match scene.assets.images.get(p) {
+                Some(img) => Texture::data(img),
+                None => Texture::load_data(&scene.resolve(p))?,
+            }),
             None => None,
         },
         transmission: m.transmission,
@@ -353,9 +363,9 @@ impl Geometry {
     /// the samples of one pixel. Pairs beyond the shortest slice are not traced.
     pub fn intersect_packet(&self, rays: &[Ray], tmin: f32, tmax: &[f32], out: &mut [Option<SurfaceHit>]) {
         for ((rays, tmax), out) in rays
-            .chunks(crate::bvh::PACKET)
-            .zip(tmax.chunks(crate::bvh::PACKET))
-            .zip(out.chunks_mut(crate::bvh::PACKET))
+            .chunks(crate::trace::bvh::PACKET)
+            .zip(tmax.chunks(crate::trace::bvh::PACKET))
+            .zip(out.chunks_mut(crate::trace::bvh::PACKET))
         {
             let mut p = RayPack::empty();
             let mut act = 0u32;
@@ -375,14 +385,14 @@ impl Geometry {
         self.bvh.intersect_pack(p, act, tmin);
         // Start loading every hit's attributes before using the first (they are scattered over
         // a large array: each is a likely cache miss).
-        for r in 0..crate::bvh::PACKET {
+        for r in 0..crate::trace::bvh::PACKET {
             if act >> r & 1 != 0 {
                 if let Some(h) = p.hit(r) {
                     self.prefetch_attrs(h.prim);
                 }
             }
         }
-        for r in 0..crate::bvh::PACKET {
+        for r in 0..crate::trace::bvh::PACKET {
             if act >> r & 1 != 0 {
                 // A `match`, not `map` with a closure: the closure was compiled out of line,
                 // outside the integrator's vector-feature kernels.

@@ -6,9 +6,9 @@
 //! rays share BVH traversals as packets). `trace_packet` is compiled for packets of [`PACKET`],
 //! 4 and 1 lanes, and a pixel's samples take the narrowest that holds them: the per-lane arrays
 //! and sample numbers of a low-spp render (the first frames of a progressive preview) cost the
-//! lanes it uses rather than sixteen (−14 % render time at 1 spp, −4 % at 4, BENCHMARKS.md).
+//! lanes it uses rather than sixteen (−14 % render time at 1 spp, −4 % at 4; git history of BENCHMARKS.md).
 //!
-//! Random numbers ([`crate::sampler`], chosen by [`Renderer::sampler`]): each `(pixel, sample)`
+//! Random numbers ([`crate::trace::sampler`], chosen by [`Renderer::sampler`]): each `(pixel, sample)`
 //! asks for its uniforms by *dimension*, fixed per decision and bounce — pixel position
 //! (dimension 0), lens position with depth of field (`sampler::dim::LENS`), then per bounce `b`
 //! a block of five: light pick (1-D), light position (2-D),
@@ -23,7 +23,7 @@
 //! lockstep = each sample traced alone).
 //!
 //! Per path vertex: one light is picked by its estimated contribution at the vertex
-//! ([`crate::light::LightPick`]) and sampled (NEE; MIS with the BSDF pdf for area, sphere,
+//! ([`crate::trace::light::LightPick`]) and sampled (NEE; MIS with the BSDF pdf for area, sphere,
 //! world, wide-sun and emissive-triangle lights, none for delta lights), then the BSDF is
 //! sampled and the emission the new ray finds (area lights on the way, the surface hit, or the
 //! world) is MIS-weighted with the light pdf of the vertex it left, pick probability included. Russian roulette from the fourth vertex on (survival `min(max β, 0.95)`).
@@ -31,22 +31,22 @@
 //! Bounces follow Cycles' `max_bounces`: with `max_bounces = B`, light is gathered at up to
 //! `B + 1` surface vertices (0 = direct lighting only).
 //!
-//! Pass bookkeeping (see [`crate::film`]): light arriving at the first hit is split between the
+//! Pass bookkeeping (see [`crate::trace::film`]): light arriving at the first hit is split between the
 //! diffuse / glossy / transmission passes in proportion to each lobe's share of the BSDF value
 //! (per channel) — for light sampling the lobe evaluations, for the continuing path the lobe
 //! weights of the first sampled direction — and goes to `*Dir` when it comes straight from a
 //! light, to `*Ind` otherwise.
-use crate::bvh::{Isa, Ray, RayPack, PACKET};
-use crate::camera::CameraRays;
 use crate::error::{RenderError, Result};
-use crate::film::{Film, PixelSum};
-use crate::geometry::{Geometry, SurfaceHit};
-use crate::light::{LightPick, Lights, ShadingPoint};
-use crate::material::{Bsdf, BsdfEval, BsdfSample};
 use crate::math::V3;
-use crate::sampler::{PacketSampler, Sampler};
-use crate::sampling::power_heuristic;
 use crate::scene::Scene;
+use crate::trace::bvh::{Isa, Ray, RayPack, PACKET};
+use crate::trace::camera::CameraRays;
+use crate::trace::film::{Film, PixelSum};
+use crate::trace::geometry::{Geometry, SurfaceHit};
+use crate::trace::light::{LightPick, Lights, ShadingPoint};
+use crate::trace::material::{Bsdf, BsdfEval, BsdfSample};
+use crate::trace::sampler::{PacketSampler, Sampler};
+use crate::trace::sampling::power_heuristic;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// How to render.

@@ -50,9 +50,9 @@
 //! Lobes are picked for sampling in proportion to the luminance of their albedos; MIS uses the
 //! combined pdf of the non-delta lobes. Evaluations are returned per lobe (diffuse / glossy /
 //! transmission) so the film can split light into Cycles' passes.
-use crate::geometry::{MaterialData, SurfaceHit};
 use crate::math::{Frame, V3};
-use crate::sampling::{cosine_hemisphere, ggx_d, ggx_g1, ggx_lambda, ggx_sample_vndf};
+use crate::trace::geometry::{MaterialData, SurfaceHit};
+use crate::trace::sampling::{cosine_hemisphere, ggx_d, ggx_g1, ggx_lambda, ggx_sample_vndf};
 use std::f32::consts::FRAC_1_PI;
 
 pub mod ggx_albedo;

@@ -625,13 +625,13 @@ mod tests {
             }
         }
         for (seed, pixel, s0, n) in [(3u64, 17u64, 0u32, 16usize), (3, 17, 16, 16), (9, 4096, 32, 5)] {
-            check::<{ crate::bvh::PACKET }>(seed, pixel, s0, n);
+            check::<{ crate::trace::bvh::PACKET }>(seed, pixel, s0, n);
         }
         for (seed, pixel, s0) in [(3u64, 17u64, 0u32), (9, 4096, 0), (9, 4096, 37)] {
             check::<1>(seed, pixel, s0, 1);
         }
         // The independent packet draws each lane's stream in call order.
-        let mut p = IndependentPacket::<{ crate::bvh::PACKET }>::start(5, 8, 16, 3);
+        let mut p = IndependentPacket::<{ crate::trace::bvh::PACKET }>::start(5, 8, 16, 3);
         let mut r = Rng::for_stream(5, &[8, 17]);
         let want: Vec<f32> = (0..9).map(|_| r.f32()).collect();
         let [u, v] = p.camera(1);

@@ -16,7 +16,11 @@ impl Texture {
     /// A colour texture (RGB, linear).
     pub fn load_color(path: &Path) -> Result<Self> {
         let img = pixl_core::io::read_image(path)?;
-        let srgb = pixl_core::io::extension(path) != "exr";
+        Ok(Self::color(&img, pixl_core::io::extension(path) != "exr"))
+    }
+
+    /// A colour texture from an image in memory: sRGB-decoded when `srgb`, grey repeated to RGB.
+    pub fn color(img: &Image, srgb: bool) -> Self {
         let ch = img.channels;
         let rgb = Image::from_fn(img.width, img.height, 3, |x, y, c| {
             let v = img.get(x, y, if ch >= 3 { c } else { 0 });
@@ -26,25 +30,33 @@ impl Texture {
                 v
             }
         });
-        Ok(Texture { img: rgb })
+        Texture { img: rgb }
     }
 
     /// An RGB data texture (as stored, no colour decoding; grey images repeat their channel).
     pub fn load_data(path: &Path) -> Result<Self> {
-        let img = pixl_core::io::read_image(path)?;
+        Ok(Self::data(&pixl_core::io::read_image(path)?))
+    }
+
+    /// [`Texture::load_data`] of an image in memory.
+    pub fn data(img: &Image) -> Self {
         let ch = img.channels;
         let rgb = Image::from_fn(img.width, img.height, 3, |x, y, c| {
             img.get(x, y, if ch >= 3 { c } else { 0 })
         });
-        Ok(Texture { img: rgb })
+        Texture { img: rgb }
     }
 
     /// A scalar texture (first channel, as stored).
     pub fn load_scalar(path: &Path) -> Result<Self> {
-        let img = pixl_core::io::read_image(path)?;
-        Ok(Texture {
+        Ok(Self::scalar(&pixl_core::io::read_image(path)?))
+    }
+
+    /// [`Texture::load_scalar`] of an image in memory.
+    pub fn scalar(img: &Image) -> Self {
+        Texture {
             img: img.select_channels(0..1),
-        })
+        }
     }
 
     pub fn from_image(img: Image) -> Self {

@@ -36,7 +36,7 @@ use pixl_core::output::Provisional;
 use pixl_core::Image;
 use pixl_data::folder::{CoarseAlbedo, SynthImageRecord, SynthManifest, SynthSceneRecord, Tone, MANIFEST};
 use pixl_data::{coarse_ct_path, Split};
-use pixl_intrinsics::compose::{compose, ComposeOptions, PassSet};
+use pixl_intrinsics::compose::{compose_film, ComposeOptions};
 use pixl_render::{Film, RenderOptions, Scene};
 use std::path::Path;
 
@@ -165,8 +165,7 @@ fn render_one(
     ct_path: &Path,
 ) -> Result<(Film, Image)> {
     let passes_film = render(opts, scene, opts.spp, seed)?;
-    let passes = PassSet::from_exr_channels(&passes_film.to_exr_channels(), None)?;
-    let composed = compose(&passes, &ComposeOptions::default())?;
+    let composed = compose_film(&passes_film, &ComposeOptions::default())?;
     pixl_intrinsics::ct::write_ct(ct_path, &composed.ct)?;
     let film = if image_spp == opts.spp {
         passes_film

@@ -18,7 +18,7 @@
 //! `u8/u16/u32` indices (or none: consecutive triples). If some primitive lacks normals or UVs,
 //! the merged mesh drops them.
 use super::{check_writable, parse_err, Result};
-use crate::mesh::Mesh;
+use crate::scene::mesh::Mesh;
 use pixl_core::CoreError;
 use serde_json::{json, Value};
 use std::path::Path;

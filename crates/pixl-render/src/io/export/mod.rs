@@ -7,7 +7,7 @@
 //! `1 − v` and their readers flip back; an OBJ/PLY round trip reproduces `v` to within one ulp.
 //!
 //! All writes are atomic ([`pixl_core::io::atomic_write`]).
-use crate::mesh::Mesh;
+use crate::scene::mesh::Mesh;
 use std::path::{Path, PathBuf};
 
 pub mod glb;

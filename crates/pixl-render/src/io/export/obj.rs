@@ -9,7 +9,7 @@
 //! If any corner lacks a normal, the mesh gets none (face normals are used); if any lacks a
 //! texture coordinate, UVs are dropped as well. `vt` is flipped (`v ← 1 − v`), see [`super`].
 use super::{check_writable, parse_err, Result};
-use crate::mesh::Mesh;
+use crate::scene::mesh::Mesh;
 use pixl_core::CoreError;
 use std::collections::HashMap;
 use std::fmt::Write as _;

@@ -8,7 +8,7 @@
 //! (`vertex_indices` or `vertex_index`). Other elements are skipped if they precede nothing we
 //! need or have only scalar properties. `t` is flipped (`v ← 1 − t`), see [`super`].
 use super::{check_writable, parse_err, MeshIoError, Result};
-use crate::mesh::Mesh;
+use crate::scene::mesh::Mesh;
 use pixl_core::CoreError;
 use std::path::Path;
 

@@ -56,14 +56,14 @@
 //!   share one traversal: a node is visited while any live lane enters it. On AVX2 CPUs the
 //!   kernel is written with intrinsics (`packet_avx2.rs`: a child box or a triangle against 16
 //!   lanes in two 8-wide vectors), on AVX-512 CPUs in one 16-wide vector with mask registers
-//!   (`packet_avx512.rs`: packets 25–45 % faster, the benchmark render ~4 % on a Zen 5, session
-//!   19); elsewhere portable lane loops. Once a node is reached by at
+//!   (`packet_avx512.rs`: packets 25–45 % faster, the benchmark render ~4 % on a Zen 5);
+//!   elsewhere portable lane loops. Once a node is reached by at
 //!   most `FINISH_ALONE` (3) live lanes, each finishes that subtree by single-ray traversal
 //!   (cheaper per node than a nearly empty packet). Per lane, results equal the single-ray
 //!   query's (same triangle test), up to ties.
 //! - `PIXL_ISA=base` in the environment forces the portable code, `PIXL_ISA=avx2` the AVX2
 //!   kernels (for A/B measurements; `base` also caps the renderer's pixel loop,
-//!   [`crate::integrator::Renderer::render_pixel`]).
+//!   [`crate::trace::integrator::Renderer::render_pixel`]).
 //!
 //! Why our own rather than a crate: the renderer needs a few hundred lines of BVH, must be
 //! deterministic and is tuned to this triangle layout; the crates we looked at (`bvh`, `obvhs`)

@@ -43,49 +43,49 @@ mod imp {
 
     impl F4 {
         #[inline(always)]
-        pub(in crate::bvh) fn load(a: &[f32; 4]) -> F4 {
+        pub(in crate::trace::bvh) fn load(a: &[f32; 4]) -> F4 {
             F4(sse!(_mm_loadu_ps(a.as_ptr())))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn splat(x: f32) -> F4 {
+        pub(in crate::trace::bvh) fn splat(x: f32) -> F4 {
             F4(sse!(_mm_set1_ps(x)))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn to_array(self) -> [f32; 4] {
+        pub(in crate::trace::bvh) fn to_array(self) -> [f32; 4] {
             let mut a = [0f32; 4];
             sse!(_mm_storeu_ps(a.as_mut_ptr(), self.0));
             a
         }
         #[inline(always)]
-        pub(in crate::bvh) fn min(self, o: F4) -> F4 {
+        pub(in crate::trace::bvh) fn min(self, o: F4) -> F4 {
             F4(sse!(_mm_min_ps(self.0, o.0)))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn max(self, o: F4) -> F4 {
+        pub(in crate::trace::bvh) fn max(self, o: F4) -> F4 {
             F4(sse!(_mm_max_ps(self.0, o.0)))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn lt(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn lt(self, o: F4) -> M4 {
             M4(sse!(_mm_cmplt_ps(self.0, o.0)))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn gt(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn gt(self, o: F4) -> M4 {
             M4(sse!(_mm_cmpgt_ps(self.0, o.0)))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn le(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn le(self, o: F4) -> M4 {
             M4(sse!(_mm_cmple_ps(self.0, o.0)))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn ge(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn ge(self, o: F4) -> M4 {
             M4(sse!(_mm_cmpge_ps(self.0, o.0)))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn eq(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn eq(self, o: F4) -> M4 {
             M4(sse!(_mm_cmpeq_ps(self.0, o.0)))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn ne(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn ne(self, o: F4) -> M4 {
             M4(sse!(_mm_cmpneq_ps(self.0, o.0)))
         }
     }
@@ -93,7 +93,7 @@ mod imp {
     impl M4 {
         /// Bit `i` set where lane `i` holds.
         #[inline(always)]
-        pub(in crate::bvh) fn bits(self) -> u32 {
+        pub(in crate::trace::bvh) fn bits(self) -> u32 {
             sse!(_mm_movemask_ps(self.0)) as u32
         }
     }
@@ -123,15 +123,15 @@ mod imp {
 
     impl F4 {
         #[inline(always)]
-        pub(in crate::bvh) fn load(a: &[f32; 4]) -> F4 {
+        pub(in crate::trace::bvh) fn load(a: &[f32; 4]) -> F4 {
             F4(*a)
         }
         #[inline(always)]
-        pub(in crate::bvh) fn splat(x: f32) -> F4 {
+        pub(in crate::trace::bvh) fn splat(x: f32) -> F4 {
             F4([x; 4])
         }
         #[inline(always)]
-        pub(in crate::bvh) fn to_array(self) -> [f32; 4] {
+        pub(in crate::trace::bvh) fn to_array(self) -> [f32; 4] {
             self.0
         }
         #[inline(always)]
@@ -143,35 +143,35 @@ mod imp {
             M4(std::array::from_fn(|i| f(self.0[i], o.0[i])))
         }
         #[inline(always)]
-        pub(in crate::bvh) fn min(self, o: F4) -> F4 {
+        pub(in crate::trace::bvh) fn min(self, o: F4) -> F4 {
             self.zip(o, |a, b| if a < b { a } else { b })
         }
         #[inline(always)]
-        pub(in crate::bvh) fn max(self, o: F4) -> F4 {
+        pub(in crate::trace::bvh) fn max(self, o: F4) -> F4 {
             self.zip(o, |a, b| if a > b { a } else { b })
         }
         #[inline(always)]
-        pub(in crate::bvh) fn lt(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn lt(self, o: F4) -> M4 {
             self.cmp(o, |a, b| a < b)
         }
         #[inline(always)]
-        pub(in crate::bvh) fn gt(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn gt(self, o: F4) -> M4 {
             self.cmp(o, |a, b| a > b)
         }
         #[inline(always)]
-        pub(in crate::bvh) fn le(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn le(self, o: F4) -> M4 {
             self.cmp(o, |a, b| a <= b)
         }
         #[inline(always)]
-        pub(in crate::bvh) fn ge(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn ge(self, o: F4) -> M4 {
             self.cmp(o, |a, b| a >= b)
         }
         #[inline(always)]
-        pub(in crate::bvh) fn eq(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn eq(self, o: F4) -> M4 {
             self.cmp(o, |a, b| a == b)
         }
         #[inline(always)]
-        pub(in crate::bvh) fn ne(self, o: F4) -> M4 {
+        pub(in crate::trace::bvh) fn ne(self, o: F4) -> M4 {
             self.cmp(o, |a, b| a != b)
         }
     }
@@ -179,7 +179,7 @@ mod imp {
     impl M4 {
         /// Bit `i` set where lane `i` holds.
         #[inline(always)]
-        pub(in crate::bvh) fn bits(self) -> u32 {
+        pub(in crate::trace::bvh) fn bits(self) -> u32 {
             (0..4).fold(0, |m, i| m | (self.0[i] as u32) << i)
         }
     }

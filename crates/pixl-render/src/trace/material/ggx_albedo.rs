@@ -27,7 +27,7 @@
 use super::fresnel_dielectric;
 use super::ggx_tables;
 use crate::math::V3;
-use crate::sampling::{ggx_lambda, ggx_sample_vndf};
+use crate::trace::sampling::{ggx_lambda, ggx_sample_vndf};
 use rayon::prelude::*;
 
 const NE: usize = 32;
@@ -388,7 +388,7 @@ mod tests {
             }
             out.push_str("];\n");
         }
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/src/material/ggx_tables.rs");
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/src/trace/material/ggx_tables.rs");
         std::fs::write(path, out).unwrap();
     }
 

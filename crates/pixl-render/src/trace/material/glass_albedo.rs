@@ -14,7 +14,7 @@
 //! BSDF's own quadrature.
 use super::fresnel_dielectric;
 use crate::math::V3;
-use crate::sampling::{ggx_lambda, ggx_sample_vndf};
+use crate::trace::sampling::{ggx_lambda, ggx_sample_vndf};
 
 const N_R: usize = 16;
 const N_MU: usize = 16;

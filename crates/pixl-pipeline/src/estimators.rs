@@ -1,0 +1,126 @@
+//! The estimators the pipeline plugs in: [`Da3Depth`] runs Depth Anything 3 (metric or mono,
+//! `pixl_estimate::da3`) as a [`DepthEstimator`]. Where its weights come from (a models folder,
+//! the Hugging Face cache, a download with the licence shown) is the caller's business: it hands
+//! over the folder that holds them.
+use crate::depth::{DepthEstimator, DepthKind, EstimatedDepth};
+use crate::error::{PipelineError, Result};
+use candle_core::Device;
+use pixl_core::Image;
+use pixl_estimate::da3::{Da3, Da3Options, Da3Variant};
+use pixl_render::depth::DepthMap;
+use std::path::Path;
+
+/// Smallest photo side the estimators accept (one 14-pixel ViT patch).
+pub const MIN_SIDE: usize = 14;
+/// Longest side DA3 processes by default (the official default).
+pub const DEFAULT_PROCESS_RES: usize = 504;
+
+/// Checks a DA3 processing resolution.
+pub fn check_process_res(r: usize) -> Result<()> {
+    if !(MIN_SIDE..=4096).contains(&r) {
+        return Err(PipelineError::input(format!(
+            "--process-res {r}: must be between {MIN_SIDE} and 4096"
+        )));
+    }
+    Ok(())
+}
+
+/// Depth Anything 3 as a [`DepthEstimator`].
+pub struct Da3Depth {
+    net: Da3,
+    /// Longest side the photo is resized to for the network.
+    pub process_res: usize,
+    /// `da3-metric` / `da3-mono`.
+    pub label: String,
+}
+
+impl Da3Depth {
+    /// Loads the checkpoint in `dir` (the official Hugging Face layout) on `device`; `label`
+    /// names it in messages. `want` is the variant asked for: another one is refused.
+    pub fn load(dir: &Path, want: Da3Variant, label: &str, device: &Device) -> Result<Da3Depth> {
+        let net = Da3::load(dir, device)
+            .map_err(|e| PipelineError::from(e).context(format!("loading `{label}` from {}", dir.display())))?;
+        if net.variant() != want {
+            return Err(PipelineError::input(format!(
+                "{}: the checkpoint is DA3 {:?}, but `{label}` was asked for (a config.json of another model?)",
+                dir.display(),
+                net.variant(),
+            )));
+        }
+        Ok(Da3Depth {
+            net,
+            process_res: DEFAULT_PROCESS_RES,
+            label: label.to_string(),
+        })
+    }
+
+    pub fn variant(&self) -> Da3Variant {
+        self.net.variant()
+    }
+
+    /// The full estimate (depth and sky mask as DA3 gives them).
+    pub fn estimate_raw(&self, photo: &Image, focal_px: f64) -> Result<pixl_estimate::da3::DepthEstimate> {
+        if photo.width < MIN_SIDE || photo.height < MIN_SIDE {
+            return Err(PipelineError::input(format!(
+                "the photo is {}x{}; depth estimation needs at least {MIN_SIDE}x{MIN_SIDE} pixels",
+                photo.width, photo.height
+            )));
+        }
+        let opts = Da3Options {
+            process_res: self.process_res,
+            focal_px_at_photo: Some(focal_px),
+        };
+        let est = self
+            .net
+            .estimate(photo, &opts)
+            .map_err(|e| PipelineError::from(e).context(format!("estimating depth with `{}`", self.label)))?;
+        let d = &est.depth;
+        if (d.width, d.height) != (photo.width, photo.height) || d.channels < 1 {
+            return Err(PipelineError::input(format!(
+                "`{}` returned a {}x{}x{} depth map for a {}x{} photo",
+                self.label, d.width, d.height, d.channels, photo.width, photo.height
+            )));
+        }
+        Ok(est)
+    }
+}
+
+/// DA3's depth with sky (and anything non-finite or ≤ 0) as 0 = missing.
+pub fn depth_without_sky(est: &pixl_estimate::da3::DepthEstimate) -> Vec<f32> {
+    let d = &est.depth;
+    (0..d.width * d.height)
+        .map(|i| {
+            let v = d.data[i * d.channels];
+            let sky = est.sky_mask.get(i).copied().unwrap_or(false);
+            if sky || !v.is_finite() || v <= 0.0 {
+                0.0
+            } else {
+                v
+            }
+        })
+        .collect()
+}
+
+impl DepthEstimator for Da3Depth {
+    fn name(&self) -> String {
+        match self.net.variant() {
+            Da3Variant::Metric => format!("Depth Anything 3 metric ({})", self.label),
+            Da3Variant::Mono => format!("Depth Anything 3 relative ({})", self.label),
+        }
+    }
+
+    fn estimate(&self, photo: &Image, focal_px: f64) -> Result<EstimatedDepth> {
+        let est = self.estimate_raw(photo, focal_px)?;
+        let sky = est.sky_mask.iter().filter(|s| **s).count();
+        let (w, h) = (photo.width, photo.height);
+        Ok(EstimatedDepth {
+            depth: DepthMap::new(w, h, depth_without_sky(&est))?,
+            kind: if est.metric {
+                DepthKind::Metric
+            } else {
+                DepthKind::Relative
+            },
+            sky_fraction: sky as f64 / (w * h).max(1) as f64,
+        })
+    }
+}

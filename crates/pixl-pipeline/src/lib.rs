@@ -1,0 +1,34 @@
+//! `pixl-pipeline`: relighting a photograph, stage by stage, as a library (paper §3.4) — the
+//! code behind `pixl relight`, `pixl reconstruct` and `pixl studio`.
+//!
+//! ```text
+//! Photo ──► depth ──► Geometry ──► + lights ──► render passes ──► C_T ──► network ──► relit
+//! (photo)   (depth)   (reconstruct)  (scene)     (render)                  (relight)
+//! ```
+//!
+//! - [`photo`]: the photo, decoded once, with its focal length ([`exif`]).
+//! - [`depth`]: depth files, their kinds and conversion to metres; the [`depth::DepthEstimator`]
+//!   trait, with Depth Anything 3 behind it in [`estimators`].
+//! - [`reconstruct`]: photo + metric depth (+ material maps) → [`reconstruct::Geometry`], in
+//!   memory, written as a scene folder only when asked.
+//! - [`lights`]: one light as the user says it ([`lights::LightSpec`]), placed in the scene.
+//! - [`render`]: the scene under its lights → passes → C_T.
+//! - [`relight`]: the network ([`relight::Network`], bundled weights by default), its memory
+//!   plan, and the relit photo at full size.
+//! - [`observe`]: how a caller watches long stages ([`observe::Observer`]).
+//!
+//! Typed errors ([`PipelineError`]); no stage prints: notes and progress go to the observer.
+pub mod depth;
+pub mod error;
+pub mod estimators;
+pub mod exif;
+pub mod lights;
+pub mod observe;
+pub mod photo;
+pub mod reconstruct;
+pub mod relight;
+pub mod render;
+
+pub use error::{PipelineError, Result};
+pub use observe::{Observer, Silent, Stage};
+pub use photo::Photo;
