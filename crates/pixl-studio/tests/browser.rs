@@ -1,7 +1,9 @@
 //! The page in a real browser: headless Chromium driven through WebDriver (chromedriver, started
 //! here on a free loopback port). Skips, saying so, when no Chromium or chromedriver is installed
 //! (Debian: `apt-get install -y chromium chromium-driver`; or set PIXL_CHROMIUM and
-//! PIXL_CHROMEDRIVER to the binaries). Set PIXL_STUDIO_SCREENSHOT=path.png to keep a screenshot.
+//! PIXL_CHROMEDRIVER to the binaries). Set PIXL_STUDIO_SCREENSHOT=path.png to keep a screenshot,
+//! and PIXL_STUDIO_PHOTO=photo.png to run it on that photo (at a 384-px working size) instead of
+//! a 128-px render of the demo scene.
 mod common;
 
 use common::*;
@@ -87,28 +89,41 @@ async fn place_drag_preset_and_save_in_headless_chromium() {
         return;
     };
 
-    // The photo: the bundled demo scene rendered at 128 px wide.
-    let demo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo/scene.toml");
-    let scene = pixl_render::Scene::load(&demo).unwrap();
-    let opts = pixl_render::RenderOptions {
-        spp: 4,
-        width: Some(128),
-        ..Default::default()
+    // The photo: the bundled demo scene rendered at 128 px wide, or PIXL_STUDIO_PHOTO.
+    let (png, name, side) = match std::env::var_os("PIXL_STUDIO_PHOTO") {
+        Some(p) => (std::fs::read(&p).unwrap(), "photo.png", 384),
+        None => {
+            let demo = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../assets/demo/scene.toml");
+            let scene = pixl_render::Scene::load(&demo).unwrap();
+            let opts = pixl_render::RenderOptions {
+                spp: 4,
+                width: Some(128),
+                ..Default::default()
+            };
+            let photo = pixl_render::render(&scene, &opts, &|_, _| {}).unwrap().combined_srgb();
+            (pixl_studio::pipeline::png_bytes(&photo).unwrap(), "demo-render.png", 128)
+        }
     };
-    let photo = pixl_render::render(&scene, &opts, &|_, _| {}).unwrap().combined_srgb();
-    let png = pixl_studio::pipeline::png_bytes(&photo).unwrap();
+    let full = decode(&png);
+    let (work_w, _) = pixl_model::fullres::working_size(full.width() as usize, full.height() as usize, side);
     let out = tempfile::tempdir().unwrap();
     let config = StudioConfig {
-        work_side: 128,
+        work_side: side,
         preview_side: 64,
-        stages: vec![Stage { side: 64, spp: 1 }, Stage { side: 128, spp: 4 }],
+        stages: vec![
+            Stage {
+                side: side / 2,
+                spp: 1,
+            },
+            Stage { side, spp: 4 },
+        ],
         max_bounces: 2,
         settle_ms: 60,
         out_dir: out.path().to_owned(),
         ..StudioConfig::default()
     };
     let studio = Studio::new(config).unwrap();
-    studio.load_photo_bytes(&png, "demo-render.png").unwrap();
+    studio.load_photo_bytes(&png, name).unwrap();
     let addr = spawn_server(studio);
 
     // chromedriver on a free port, and a fresh browser profile.
@@ -156,7 +171,7 @@ async fn place_drag_preset_and_save_in_headless_chromium() {
             .execute("return document.getElementById('before').naturalWidth", vec![])
             .await
             .unwrap();
-        if w.as_u64().unwrap_or(0) == 128 {
+        if w.as_u64().unwrap_or(0) == work_w as u64 {
             loaded = true;
             break;
         }
