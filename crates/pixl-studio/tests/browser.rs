@@ -101,7 +101,11 @@ async fn place_drag_preset_and_save_in_headless_chromium() {
                 ..Default::default()
             };
             let photo = pixl_render::render(&scene, &opts, &|_, _| {}).unwrap().combined_srgb();
-            (pixl_studio::pipeline::png_bytes(&photo).unwrap(), "demo-render.png", 128)
+            (
+                pixl_studio::pipeline::png_bytes(&photo).unwrap(),
+                "demo-render.png",
+                128,
+            )
         }
     };
     let full = decode(&png);
@@ -110,13 +114,7 @@ async fn place_drag_preset_and_save_in_headless_chromium() {
     let config = StudioConfig {
         work_side: side,
         preview_side: 64,
-        stages: vec![
-            Stage {
-                side: side / 2,
-                spp: 1,
-            },
-            Stage { side, spp: 4 },
-        ],
+        stages: vec![Stage { side: side / 2, spp: 1 }, Stage { side, spp: 4 }],
         max_bounces: 2,
         settle_ms: 60,
         out_dir: out.path().to_owned(),
