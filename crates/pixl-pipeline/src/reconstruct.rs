@@ -146,11 +146,12 @@ fn color_texture(img: &Image, linear: bool) -> Image {
 }
 
 /// Builds the coarse scene of `photo` from its metric `depth` (at the photo's size; 0 =
-/// missing) and optional `maps` (see the module docs). Notes for the user (the stride chosen)
-/// go to `observer`.
+/// missing; `depth_name` names it in errors: its file, or "the estimated depth") and optional
+/// `maps` (see the module docs). Notes for the user (the stride chosen) go to `observer`.
 pub fn reconstruct(
     photo: &Photo,
     depth: &DepthMap,
+    depth_name: &str,
     maps: &Maps,
     settings: &MeshSettings,
     observer: &dyn Observer,
@@ -166,7 +167,7 @@ pub fn reconstruct(
     }
     if (depth.width, depth.height) != size {
         return Err(PipelineError::input(format!(
-            "the depth map is {}x{} but the photo is {}x{}",
+            "{depth_name} is {}x{} but the photo is {}x{}",
             depth.width, depth.height, size.0, size.1
         )));
     }
@@ -210,12 +211,14 @@ more than --max-triangles {}; pass --stride 1 to keep them all",
         ..Default::default()
     };
     if depth.count_valid(opts.max_depth) == 0 {
-        return Err(PipelineError::input("the depth map: no pixel has a positive depth"));
+        return Err(PipelineError::input(format!(
+            "{depth_name}: no pixel has a positive depth"
+        )));
     }
     let intr = Intrinsics::from_focal_px(size.0, size.1, photo.focal.px)?;
     let mesh = depth::depth_to_mesh(depth, &intr, maps.normals.as_ref(), &opts)?;
     if mesh.indices.is_empty() {
-        return Err(no_triangle_error(depth, &opts, size, stride));
+        return Err(no_triangle_error(depth, depth_name, &opts, size, stride));
     }
 
     let mut textures = Vec::new();
@@ -282,7 +285,13 @@ more than --max-triangles {}; pass --stride 1 to keep them all",
 }
 
 /// Why no triangle survived: a grid too coarse for the image, missing depth, or depth jumps.
-fn no_triangle_error(depth: &DepthMap, opts: &MeshOptions, size: (usize, usize), stride: usize) -> PipelineError {
+fn no_triangle_error(
+    depth: &DepthMap,
+    depth_name: &str,
+    opts: &MeshOptions,
+    size: (usize, usize),
+    stride: usize,
+) -> PipelineError {
     let c = depth::cut_counts(depth, opts);
     let total = c.missing_depth + c.depth_jump;
     if c.grid.0 < 2 || c.grid.1 < 2 || (stride > 1 && total < 32) {
@@ -293,12 +302,12 @@ fn no_triangle_error(depth: &DepthMap, opts: &MeshOptions, size: (usize, usize),
     }
     if c.missing_depth >= c.depth_jump {
         return PipelineError::input(format!(
-            "the depth map: no triangle has valid depth at all three corners ({} of {} lack depth); check the depth map (0, negative and beyond-far values count as missing)",
+            "{depth_name}: no triangle has valid depth at all three corners ({} of {} lack depth); check the depth map (0, negative and beyond-far values count as missing)",
             c.missing_depth, total
         ));
     }
     PipelineError::input(format!(
-        "the depth map: every triangle was cut at a depth jump over --max-jump {} ({} of {}; at --stride {stride} neighbouring samples are {stride} pixels apart); raise --max-jump{}",
+        "{depth_name}: every triangle was cut at a depth jump over --max-jump {} ({} of {}; at --stride {stride} neighbouring samples are {stride} pixels apart); raise --max-jump{}",
         opts.max_jump,
         c.depth_jump,
         total,
@@ -319,7 +328,13 @@ impl Geometry {
         let roughness = self.scene.objects.first().map(|o| o.material.roughness).unwrap_or(0.5);
         let mesh_name = match format {
             MeshFormat::Glb => {
-                let png = std::fs::read(dir.join(base_tex)).map_err(|e| PipelineError::io(dir.join(base_tex), e))?;
+                // The colour texture's PNG, as written above.
+                let png = match self.textures.first() {
+                    Some((_, img, depth)) => {
+                        pixl_core::io::encode_png(img, *depth, pixl_core::io::PngCompression::Default)?
+                    }
+                    None => return Err(PipelineError::input("the geometry has no colour texture")),
+                };
                 let m = glb::GlbMaterial {
                     name: "photo".into(),
                     base_color_png: Some(png),

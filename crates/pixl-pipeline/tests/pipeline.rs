@@ -38,7 +38,7 @@ fn a_photo_becomes_a_scene_a_ct_and_a_relit_photo() {
         stride: Some(2),
         ..Default::default()
     };
-    let geometry = reconstruct(&photo, &depth, &Maps::default(), &settings, &Silent).unwrap();
+    let geometry = reconstruct(&photo, &depth, "the wall", &Maps::default(), &settings, &Silent).unwrap();
     // A smooth wall: nothing is cut, the grid is whole.
     assert_eq!(geometry.mesh.num_triangles(), grid_triangles(w, h, 2));
     assert_eq!(geometry.triangles_cut(), 0);
@@ -114,14 +114,36 @@ fn depth_of_another_kind_and_size_becomes_metric_at_the_photo() {
 fn bad_input_is_refused_with_a_reason() {
     let p = photo(8, 6);
     let wrong = wall(4, 3);
-    let e = reconstruct(&p, &wrong, &Maps::default(), &MeshSettings::default(), &Silent).unwrap_err();
-    assert!(e.to_string().contains("4x3") && e.to_string().contains("8x6"), "{e}");
+    let e = reconstruct(
+        &p,
+        &wrong,
+        "wrong.exr",
+        &Maps::default(),
+        &MeshSettings::default(),
+        &Silent,
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string().contains("wrong.exr is 4x3") && e.to_string().contains("8x6"),
+        "{e}"
+    );
     let empty = DepthMap::new(8, 6, vec![0.0; 48]).unwrap();
-    let e = reconstruct(&p, &empty, &Maps::default(), &MeshSettings::default(), &Silent).unwrap_err();
-    assert!(e.to_string().contains("no pixel has a positive depth"), "{e}");
+    let e = reconstruct(
+        &p,
+        &empty,
+        "empty.exr",
+        &Maps::default(),
+        &MeshSettings::default(),
+        &Silent,
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string().contains("empty.exr: no pixel has a positive depth"),
+        "{e}"
+    );
     let s0 = MeshSettings {
         stride: Some(0),
         ..Default::default()
     };
-    assert!(reconstruct(&p, &wall(8, 6), &Maps::default(), &s0, &Silent).is_err());
+    assert!(reconstruct(&p, &wall(8, 6), "wall.exr", &Maps::default(), &s0, &Silent).is_err());
 }

@@ -75,6 +75,11 @@ impl Default for SamplerConfig {
 }
 
 impl SamplerConfig {
+    /// Whether samples are ever conditioned on a coarse C_T (`coarse_ct` or `coarse_pair_share`).
+    pub fn wants_coarse(&self) -> bool {
+        self.coarse_ct > 0.0 || self.coarse_pair_share > 0.0
+    }
+
     pub fn validate(&self) -> Result<()> {
         let bad = |m: String| Err(TrainError::Config(format!("sampler: {m}")));
         if self.multiple == 0 || self.long_side < self.multiple || !self.long_side.is_multiple_of(self.multiple) {
@@ -189,7 +194,11 @@ pub struct Sampler {
 }
 
 /// Per scene, the ordered pairs with a coarse C_T file; and the number of all ordered pairs.
-fn find_coarse_pairs(scenes: &[SceneEntry]) -> (Vec<Vec<(usize, usize)>>, usize) {
+/// Looked up only when `cfg` draws coarse C_T at all (else no pairs, and 0 counted).
+fn find_coarse_pairs(scenes: &[SceneEntry], cfg: &SamplerConfig) -> (Vec<Vec<(usize, usize)>>, usize) {
+    if !cfg.wants_coarse() {
+        return (vec![Vec::new(); scenes.len()], 0);
+    }
     let mut all = 0;
     let found = scenes
         .iter()
@@ -221,13 +230,8 @@ impl Sampler {
         if scenes.is_empty() {
             return Err(TrainError::Config("the sampler needs at least one scene".into()));
         }
-        let wants_coarse = cfg.coarse_ct > 0.0 || cfg.coarse_pair_share > 0.0;
-        let (coarse, pairs) = if wants_coarse {
-            find_coarse_pairs(&scenes)
-        } else {
-            (vec![Vec::new(); scenes.len()], 0)
-        };
-        if wants_coarse && coarse.iter().all(Vec::is_empty) {
+        let (coarse, pairs) = find_coarse_pairs(&scenes, &cfg);
+        if cfg.wants_coarse() && coarse.iter().all(Vec::is_empty) {
             return Err(TrainError::Config(format!(
                 "[data.sampler] coarse_ct = {} / coarse_pair_share = {} but no pair of this data set has a \
                  coarse-reconstruction C_T (`pixl synth --coarse` writes them, as \
@@ -286,12 +290,7 @@ impl Sampler {
             .into_iter()
             .filter(|s| s.images.len() >= 2 && !known.contains(&s.name))
             .collect();
-        let wants_coarse = self.cfg.coarse_ct > 0.0 || self.cfg.coarse_pair_share > 0.0;
-        let (coarse, pairs) = if wants_coarse {
-            find_coarse_pairs(&new)
-        } else {
-            (vec![Vec::new(); new.len()], 0)
-        };
+        let (coarse, pairs) = find_coarse_pairs(&new, &self.cfg);
         let added = new.len();
         self.scenes.extend(new);
         self.coarse.extend(coarse);

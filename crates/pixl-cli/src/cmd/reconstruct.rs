@@ -315,8 +315,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         .as_ref()
         .map(|p| p.display().to_string())
         .unwrap_or_else(|| "the estimated depth".into());
-    let geometry = pixl_pipeline::reconstruct::reconstruct(&photo, &depth_map, &maps, &settings, &bars)
-        .map_err(|e| anyhow::anyhow!("{}", e.to_string().replace("the depth map", &depth_name)))?;
+    let geometry = pixl_pipeline::reconstruct::reconstruct(&photo, &depth_map, &depth_name, &maps, &settings, &bars)?;
 
     // What this run creates is removed again if it fails.
     let mut created = pixl_core::output::Provisional::new();

@@ -448,9 +448,14 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
         stride: Some(size.0.max(size.1).div_ceil(work.0.max(work.1)).max(1)),
         ..Default::default()
     };
+    let depth_name = match &args.depth {
+        Some(p) => p.display().to_string(),
+        None => "the estimated depth".to_string(),
+    };
     let geometry = pixl_pipeline::reconstruct::reconstruct(
         &photo,
         &depth,
+        &depth_name,
         &pixl_pipeline::reconstruct::Maps::default(),
         &settings,
         &bars,

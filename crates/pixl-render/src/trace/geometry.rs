@@ -76,16 +76,17 @@ pub struct SurfaceHit {
 /// The tessellated mesh of one object shape, in object space.
 pub fn shape_mesh(scene: &Scene, shape: &Shape) -> Result<Mesh> {
     Ok(match shape {
-        Shape::Mesh { path } if scene.assets.meshes.contains_key(path) => {
-            scene.assets.meshes.get(path).map(|m| (**m).clone()).unwrap_or_default()
-        }
-        Shape::Mesh { path } => {
-            let full = scene.resolve(path);
-            crate::io::export::load_mesh(&full).map_err(|e| RenderError::Invalid {
-                path: full.clone(),
-                message: e.to_string(),
-            })?
-        }
+        // A mesh the scene holds in memory first, else the file.
+        Shape::Mesh { path } => match scene.assets.meshes.get(path) {
+            Some(m) => (**m).clone(),
+            None => {
+                let full = scene.resolve(path);
+                crate::io::export::load_mesh(&full).map_err(|e| RenderError::Invalid {
+                    path: full.clone(),
+                    message: e.to_string(),
+                })?
+            }
+        },
         Shape::Sphere { radius } => uv_sphere(*radius, 96, 48),
         Shape::Cuboid { size } => cuboid(*size),
         Shape::Quad { size } => quad(*size),
