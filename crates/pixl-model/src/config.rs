@@ -28,6 +28,10 @@ fn is_default_patch(p: &usize) -> bool {
     *p == PATCH
 }
 
+fn is_false(b: &bool) -> bool {
+    !*b
+}
+
 /// Source encoder (ViT, paper §3.2 "Asymmetric Feature Encoders").
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -41,6 +45,16 @@ pub struct VitConfig {
     /// Side of the square grid the learned position embedding is stored at; it is resized
     /// bilinearly to each image's grid (paper training resolution 512 / 16 = 32).
     pub pos_grid: usize,
+    /// Learned per-channel LayerScale on both residual branches of every block (`ls1.gamma`,
+    /// `ls2.gamma`, as DINOv2 has). Default off (our own checkpoints); on when a checkpoint in
+    /// the official layout carries them.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub layer_scale: bool,
+    /// A learned class token (`cls_token`, `(1, 1, d)`) prepended before the blocks and dropped
+    /// after them, with its own position-embedding row (`pos_embed` is then
+    /// `(1, 1 + pos_grid², d)`, the class token's row first, as in DINOv2). Default off.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub cls_token: bool,
 }
 
 /// Intrinsics encoder (ConvNeXt, paper §3.2).
@@ -72,6 +86,9 @@ pub struct TrunkConfig {
     /// Zero-based indices of the blocks whose outputs feed the DPT head (paper: 4, 11, 17, 23).
     /// The last one must be `depth - 1`.
     pub readouts: [usize; 4],
+    /// LayerScale in every block (`ls1.gamma`, `ls2.gamma`), as [`VitConfig::layer_scale`].
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub layer_scale: bool,
 }
 
 /// DPT head (paper §3.2 "Modulation Head"), as in DPT / Depth Anything.
@@ -143,6 +160,8 @@ impl Config {
                 heads: 16,
                 mlp_ratio: 4,
                 pos_grid: 32,
+                layer_scale: false,
+                cls_token: false,
             },
             cond_encoder: ConvNextConfig {
                 dims: [128, 256, 512, 1024],
@@ -156,6 +175,7 @@ impl Config {
                 registers: 8,
                 rope_base: 100.0,
                 readouts: [4, 11, 17, 23],
+                layer_scale: false,
             },
             head: DptConfig {
                 out_channels: [256, 512, 1024, 1024],
@@ -176,6 +196,8 @@ impl Config {
                 heads: 6,
                 mlp_ratio: 4,
                 pos_grid: 32,
+                layer_scale: false,
+                cls_token: false,
             },
             cond_encoder: ConvNextConfig {
                 dims: [48, 96, 192, 384],
@@ -189,6 +211,7 @@ impl Config {
                 registers: 4,
                 rope_base: 100.0,
                 readouts: spread_readouts(8),
+                layer_scale: false,
             },
             head: DptConfig {
                 out_channels: [48, 96, 192, 384],
@@ -211,6 +234,8 @@ impl Config {
                 heads: 2,
                 mlp_ratio: 4,
                 pos_grid: 16,
+                layer_scale: false,
+                cls_token: false,
             },
             cond_encoder: ConvNextConfig {
                 dims: [16, 32, 64, 64],
@@ -224,6 +249,7 @@ impl Config {
                 registers: 4,
                 rope_base: 100.0,
                 readouts: spread_readouts(4),
+                layer_scale: false,
             },
             head: DptConfig {
                 out_channels: [16, 32, 64, 64],
@@ -366,9 +392,16 @@ impl Config {
         let lin = |i: usize, o: usize| i * o + o;
         let conv = |i: usize, o: usize, k: usize| i * o * k * k + o;
         let ln = |c: usize| 2 * c;
-        let block = |r: usize| ln(d) + lin(d, 3 * d) + lin(d, d) + ln(d) + lin(d, r * d) + lin(r * d, d);
+        let block = |r: usize, ls: bool| {
+            ln(d) + lin(d, 3 * d) + lin(d, d) + ln(d) + lin(d, r * d) + lin(r * d, d) + if ls { 2 * d } else { 0 }
+        };
         let v = &self.src_encoder;
-        let src = conv(3, d, self.patch) + v.pos_grid * v.pos_grid * d + v.depth * block(v.mlp_ratio) + ln(d);
+        let cls = usize::from(v.cls_token);
+        let src = conv(3, d, self.patch)
+            + (cls + v.pos_grid * v.pos_grid) * d
+            + cls * d
+            + v.depth * block(v.mlp_ratio, v.layer_scale)
+            + ln(d);
         let c = &self.cond_encoder;
         let mut cond = conv(9, c.dims[0], 4) + ln(c.dims[0]);
         for s in 0..4 {
@@ -382,7 +415,7 @@ impl Config {
         cond += ln(c.dims[3]) + lin(c.dims[3], d);
         let fuse = lin(2 * d, d) + lin(d, d);
         let t = &self.trunk;
-        let trunk = t.registers * d + t.depth * block(t.mlp_ratio) + ln(d);
+        let trunk = t.registers * d + t.depth * block(t.mlp_ratio, t.layer_scale) + ln(d);
         let h = &self.head;
         let (oc, f) = (h.out_channels, h.features);
         let mut head = (0..4).map(|i| conv(d, oc[i], 1)).sum::<usize>();

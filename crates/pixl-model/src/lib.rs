@@ -7,7 +7,9 @@
 //! assembles them; [`fullres`] runs it at a working resolution and applies its gain and bias to
 //! a photo of any size; [`config`] holds the presets; [`checkpoint`] builds, saves and loads weights
 //! (safetensors, PyTorch-style names, config in the metadata — see the crate README); [`parts`]
-//! splits a weights file into parts of bounded size (optionally as f16/bf16) and joins them back.
+//! splits a weights file into parts of bounded size (optionally as f16/bf16) and joins them back;
+//! [`official`] loads the paper's released checkpoint unchanged through a rename table (data) and
+//! inspects any weights file against it.
 pub mod checkpoint;
 pub mod config;
 pub mod convnext;
@@ -17,6 +19,7 @@ pub mod fusion;
 mod layers;
 pub mod model;
 pub mod modulation;
+pub mod official;
 pub mod parts;
 pub mod trunk;
 pub mod vit;

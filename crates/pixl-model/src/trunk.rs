@@ -42,7 +42,7 @@ impl Trunk {
         let t = &cfg.trunk;
         let init = candle_nn::Init::Randn { mean: 0.0, stdev: 0.02 };
         let registers = vb.get_with_hints((1, t.registers, cfg.dim), "registers", init)?;
-        let block_cfg = block_config(cfg, t.heads, t.mlp_ratio);
+        let block_cfg = block_config(cfg, t.heads, t.mlp_ratio, t.layer_scale);
         let blocks = (0..t.depth)
             .map(|i| Block::new(&block_cfg, vb.pp("blocks").pp(i)))
             .collect::<Result<Vec<_>>>()?;

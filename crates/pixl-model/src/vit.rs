@@ -12,8 +12,13 @@
 //! - pre-norm blocks (timm `Block`: `x + attn(norm1(x))`, `x + mlp(norm2(x))`), no layer scale,
 //!   and a final `norm`.
 //!
-//! The blocks are [`pixl_nn::vit::Block`] (no LayerScale), shared with the trunk, which adds 2D
-//! RoPE, and with the Depth Anything 3 backbone.
+//! A checkpoint in the official release's layout may carry DINOv2's class token and LayerScale
+//! ([`crate::config::VitConfig::cls_token`], `layer_scale`): the class token (plus its own
+//! position row, which is never resized) is prepended before block 0 and dropped after the final
+//! norm, so the output is the same `(B, N, d)` patch tokens either way.
+//!
+//! The blocks are [`pixl_nn::vit::Block`], shared with the trunk, which adds 2D RoPE, and with
+//! the Depth Anything 3 backbone.
 use crate::config::Config;
 use crate::layers::{conv2d, Conv};
 use candle_core::{Module, Result, Tensor};
@@ -23,14 +28,14 @@ use pixl_nn::LayerNorm;
 
 pub use pixl_nn::vit::{Block, PatchRope};
 
-/// The blocks' shape: `heads` heads, an MLP `mlp_ratio` times `cfg.dim` wide, no LayerScale.
-pub(crate) fn block_config(cfg: &Config, heads: usize, mlp_ratio: usize) -> BlockConfig {
+/// The blocks' shape: `heads` heads, an MLP `mlp_ratio` times `cfg.dim` wide, LayerScale or not.
+pub(crate) fn block_config(cfg: &Config, heads: usize, mlp_ratio: usize, layer_scale: bool) -> BlockConfig {
     BlockConfig {
         dim: cfg.dim,
         heads,
         mlp_hidden: mlp_ratio * cfg.dim,
         norm_eps: cfg.norm_eps,
-        layer_scale: false,
+        layer_scale,
     }
 }
 
@@ -38,7 +43,11 @@ pub(crate) fn block_config(cfg: &Config, heads: usize, mlp_ratio: usize) -> Bloc
 #[derive(Clone, Debug)]
 pub struct VitEncoder {
     patch_embed: Conv,
+    /// `(1, pos_grid², d)`: the patch rows (the class token's row is in `cls`).
     pos_embed: Tensor,
+    /// The class token and its position row, `(1, 1, d)` each, when the config has one (added
+    /// at each forward: both are views of trainable variables).
+    cls: Option<(Tensor, Tensor)>,
     blocks: Vec<Block>,
     norm: LayerNorm,
     dim: usize,
@@ -54,8 +63,18 @@ impl VitEncoder {
         };
         let patch_embed = conv2d(3, cfg.dim, cfg.patch, conv_cfg, vb.pp("patch_embed").pp("proj"))?;
         let init = candle_nn::Init::Randn { mean: 0.0, stdev: 0.02 };
-        let pos_embed = vb.get_with_hints((1, v.pos_grid * v.pos_grid, cfg.dim), "pos_embed", init)?;
-        let block_cfg = block_config(cfg, v.heads, v.mlp_ratio);
+        let cls_rows = usize::from(v.cls_token);
+        let pos_all = vb.get_with_hints((1, cls_rows + v.pos_grid * v.pos_grid, cfg.dim), "pos_embed", init)?;
+        let (pos_embed, cls) = if v.cls_token {
+            let token = vb.get_with_hints((1, 1, cfg.dim), "cls_token", init)?;
+            (
+                pos_all.narrow(1, 1, v.pos_grid * v.pos_grid)?,
+                Some((token, pos_all.narrow(1, 0, 1)?)),
+            )
+        } else {
+            (pos_all, None)
+        };
+        let block_cfg = block_config(cfg, v.heads, v.mlp_ratio, v.layer_scale);
         let blocks = (0..v.depth)
             .map(|i| Block::new(&block_cfg, vb.pp("blocks").pp(i)))
             .collect::<Result<Vec<_>>>()?;
@@ -63,6 +82,7 @@ impl VitEncoder {
         Ok(Self {
             patch_embed,
             pos_embed,
+            cls,
             blocks,
             norm,
             dim: cfg.dim,
@@ -107,13 +127,19 @@ impl VitEncoder {
         self.blocks.len()
     }
 
-    /// Patch embedding plus position embedding: `(B, 3, H, W)` → `(B, N, d)`, the input of block 0.
+    /// Patch embedding plus position embedding: `(B, 3, H, W)` → `(B, N, d)` (`(B, 1 + N, d)`
+    /// with a class token first), the input of block 0.
     pub fn embed(&self, src: &Tensor) -> Result<Tensor> {
         let xs = self.patch_embed.forward(src)?; // (B, d, gh, gw)
-        let (_b, _d, gh, gw) = xs.dims4()?;
-        xs.flatten_from(2)?
+        let (b, _d, gh, gw) = xs.dims4()?;
+        let xs = xs
+            .flatten_from(2)?
             .transpose(1, 2)?
-            .broadcast_add(&self.pos_embed_for(gh, gw)?)
+            .broadcast_add(&self.pos_embed_for(gh, gw)?)?;
+        match &self.cls {
+            Some((token, pos)) => Tensor::cat(&[&token.add(pos)?.broadcast_as((b, 1, self.dim))?, &xs], 1),
+            None => Ok(xs),
+        }
     }
 
     /// Block `i` on `(B, N, d)`.
@@ -124,9 +150,16 @@ impl VitEncoder {
         block.forward(xs, None)
     }
 
-    /// The final norm on the last block's output.
+    /// The final norm on the last block's output, class token dropped: `(B, N, d)`.
     pub fn finish(&self, xs: &Tensor) -> Result<Tensor> {
-        self.norm.forward(&xs.contiguous()?)
+        let xs = self.norm.forward(&xs.contiguous()?)?;
+        match self.cls {
+            Some(_) => {
+                let n = xs.dim(1)?;
+                xs.narrow(1, 1, n - 1)?.contiguous()
+            }
+            None => Ok(xs),
+        }
     }
 }
 

@@ -401,3 +401,45 @@ fn int8_linear_layers_stay_close_to_f32() {
         "PSNR of the 8-bit output against f32: {psnr:.1} dB (42.2 when written)"
     );
 }
+
+/// The structure presumed for the official release: DINOv2's class token and LayerScale in the
+/// ViT, LayerScale in the trunk. Every parameter (the class token and the gammas included) gets
+/// a gradient, the closed-form count matches the built network, and the class token's output
+/// row is dropped (the output keeps the patch-token shape).
+#[test]
+fn class_token_and_layer_scale_variant_trains_and_counts() {
+    let mut cfg = Config::tiny();
+    cfg.src_encoder.cls_token = true;
+    cfg.src_encoder.layer_scale = true;
+    cfg.trunk.layer_scale = true;
+    let (vm, model) = build_trainable(&cfg, 5, &Device::Cpu).unwrap();
+    assert_eq!(varmap_count(&vm), cfg.param_count());
+    let n_plain = Config::tiny().param_count();
+    let d = cfg.dim;
+    let extra = d /* cls */ + d /* its pos row */ + 2 * d * cfg.src_encoder.depth + 2 * d * cfg.trunk.depth;
+    assert_eq!(cfg.param_count(), n_plain + extra);
+    let shapes = param_shapes(&cfg).unwrap();
+    assert_eq!(shapes["src_encoder.cls_token"], vec![1, 1, d]);
+    assert_eq!(shapes["src_encoder.pos_embed"], vec![1, 1 + 16 * 16, d]);
+    assert_eq!(shapes["trunk.blocks.0.ls2.gamma"], vec![d]);
+    let mut rng = Rng::new(7);
+    let data = vm.data().lock().unwrap();
+    let w = &data["modulation.conv.weight"];
+    w.set(&rand_tensor(&mut rng, w.dims(), -0.05, 0.05)).unwrap();
+    let src = rand_tensor(&mut rng, &[1, 3, 32, 48], 0.2, 0.8);
+    let ct = rand_tensor(&mut rng, &[1, 9, 32, 48], 0.0, 1.5);
+    let target = rand_tensor(&mut rng, &[1, 3, 32, 48], 0.0, 1.0);
+    let out = model.forward(&src, &ct).unwrap();
+    assert_eq!(out.dims(), &[1, 3, 32, 48]);
+    let loss = (out - target).unwrap().abs().unwrap().mean_all().unwrap();
+    let grads = loss.backward().unwrap();
+    let offenders = gradient_offenders(&data, &grads);
+    assert!(offenders.is_empty(), "{}", offenders.join("\n"));
+    // Configs and checkpoints without the options read and write as before.
+    let json = Config::tiny().to_json();
+    assert!(
+        !json.contains("cls_token") && !json.contains("\"layer_scale\""),
+        "{json}"
+    );
+    assert_eq!(Config::from_json(&cfg.to_json()).unwrap(), cfg);
+}
