@@ -95,13 +95,26 @@ pub fn load(
 /// Decomposes one photo, with the expected time said first and a progress bar.
 pub fn run(m: &Marigold, photo: &Image, args: &IidArgs, label: &str, ctx: &Ctx) -> anyhow::Result<IidPrediction> {
     let opts = args.options();
-    let (steps, res) = m.resolve(&opts)?;
+    announce(m, photo.width, photo.height, &opts, label)?;
+    let pb = ctx.progress(1, label);
+    let pred = m.predict(photo, &opts, &mut |p| {
+        pb.set_length(p.total as u64);
+        pb.set_position(p.done as u64);
+    })?;
+    pb.finish_and_clear();
+    Ok(pred)
+}
+
+/// Logs how long decomposing a `width × height` photo with `opts` will take (measured
+/// throughput, BENCHMARKS.md); refuses options the checkpoint cannot run.
+pub fn announce(m: &Marigold, width: usize, height: usize, opts: &MarigoldOptions, label: &str) -> anyhow::Result<()> {
+    let (steps, res) = m.resolve(opts)?;
     let threads = std::env::var("RAYON_NUM_THREADS")
         .ok()
         .and_then(|v| v.parse::<usize>().ok())
         .filter(|n| *n > 0)
         .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    if let Some(tflop) = m.approx_tflop(photo.width, photo.height, &opts) {
+    if let Some(tflop) = m.approx_tflop(width, height, opts) {
         // Measured (BENCHMARKS.md): about 0.015 TFLOP/s per thread on AVX-512 cores.
         let secs = tflop / (0.015 * threads.max(1) as f64);
         tracing::info!(
@@ -110,13 +123,7 @@ pub fn run(m: &Marigold, photo: &Image, args: &IidArgs, label: &str, ctx: &Ctx) 
             human_duration(secs)
         );
     }
-    let pb = ctx.progress(1, label);
-    let pred = m.predict(photo, &opts, &mut |p| {
-        pb.set_length(p.total as u64);
-        pb.set_position(p.done as u64);
-    })?;
-    pb.finish_and_clear();
-    Ok(pred)
+    Ok(())
 }
 
 fn human_duration(secs: f64) -> String {

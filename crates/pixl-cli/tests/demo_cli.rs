@@ -1,5 +1,15 @@
-//! `pixl demo` end to end: the report exists and holds every panel for every preset.
+//! `pixl demo` end to end: the report exists and holds every panel for every preset, the default
+//! weights are the bundled ones, and with `--exact-intrinsics` and freshly initialised weights the
+//! relit image is the source and the path-traced render the ground truth, byte for byte.
 mod common;
+
+const PRESETS: [&str; 5] = [
+    "cool-side-flash",
+    "warm-overhead-flash",
+    "dim-overhead-spot",
+    "soft-frontal-sun",
+    "warm-interior-sun",
+];
 
 #[test]
 fn demo_writes_a_complete_report() {
@@ -7,13 +17,12 @@ fn demo_writes_a_complete_report() {
     let out = dir.path().join("demo");
     let o = common::pixl(&["demo", "--quiet", "--spp", "2", "--json", "--out", common::s(&out)]).ok();
     let html = std::fs::read_to_string(out.join("report.html")).unwrap();
-    let presets = [
-        "cool-side-flash",
-        "warm-overhead-flash",
-        "dim-overhead-spot",
-        "soft-frontal-sun",
-        "warm-interior-sun",
-    ];
+    let presets = PRESETS;
+    assert!(
+        html.contains("weights: bundled pixl-tiny-synth.safetensors"),
+        "the bundled weights by default"
+    );
+    assert!(out.join("reconstruction").join("scene.toml").is_file());
     assert_eq!(html.matches("<section class=\"row\">").count(), presets.len());
     // The plain-language introduction, the two summary tables (a row per preset, one bold best
     // value each) and the full-size overlay come before / after the image rows.
@@ -112,5 +121,49 @@ fn demo_writes_a_complete_report() {
             (got - want).abs() < 0.1,
             "{p}: path-traced PSNR {got} vs {want} from the PNGs"
         );
+    }
+}
+
+#[test]
+fn exact_intrinsics_with_fresh_weights_relight_to_the_source() {
+    let dir = common::tempdir();
+    let weights = common::tiny_weights(&dir.path().join("fresh.safetensors"), 0);
+    let out = dir.path().join("demo");
+    let o = common::pixl(&[
+        "demo",
+        "--quiet",
+        "--spp",
+        "1",
+        "--exact-intrinsics",
+        "--weights",
+        common::s(&weights),
+        "--json",
+        "--out",
+        common::s(&out),
+    ])
+    .ok();
+    // The true scene is C_T's scene: no coarse reconstruction is made.
+    assert!(!out.join("reconstruction").exists());
+    let html = std::fs::read_to_string(out.join("report.html")).unwrap();
+    assert!(
+        html.contains(&format!("weights: {}", weights.display())),
+        "the weights named"
+    );
+    let source = std::fs::read(out.join("source.png")).unwrap();
+    let v = o.json();
+    let rows = v["presets"].as_array().unwrap();
+    assert_eq!(rows.len(), PRESETS.len());
+    for (r, p) in rows.iter().zip(PRESETS) {
+        assert_eq!(r["preset"], p);
+        // A freshly initialised network (zero-initialised modulation) returns the source.
+        let relit = std::fs::read(out.join(p).join("relit.png")).unwrap();
+        assert!(relit == source, "{p}: relit.png is not the source");
+        assert_eq!(r["relit"], r["source"], "{p}");
+        // C_T comes from the ground truth's own render.
+        let traced = std::fs::read(out.join(p).join("path_traced.png")).unwrap();
+        let truth = std::fs::read(out.join(p).join("ground_truth.png")).unwrap();
+        assert!(traced == truth, "{p}: path_traced.png is not the ground truth");
+        assert_eq!(r["path_traced"]["psnr"], "inf", "{p}");
+        assert!(out.join(p).join("CT.exr").is_file(), "{p}/CT.exr");
     }
 }

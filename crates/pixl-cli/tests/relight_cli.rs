@@ -292,3 +292,70 @@ fn int8_relights_close_to_f32_and_refuses_bf16() {
     assert!(!refused.success());
     assert!(refused.stderr.contains("--int8"));
 }
+
+/// `--weights`: the released checkpoint (here the tiny fixture in its presumed layout, placed as
+/// `--models DIR/pixlrelight/`) is the default when it is on disk, and every run that uses it
+/// prints its licence (even under --quiet); `--weights bundled` and a models folder without it
+/// use the bundled weights (with a hint); `--weights pixlrelight` offline without it fails;
+/// the release's model.safetensors can also be given as a path. The results equal the same
+/// network loaded from our own format.
+#[test]
+fn released_checkpoint_is_the_default_when_on_disk_and_its_licence_is_shown() {
+    let dir = common::tempdir();
+    let fx = common::repo_path("fixtures/pixlrelight-official");
+    let models = dir.path().join("models");
+    let rel = models.join("pixlrelight");
+    std::fs::create_dir_all(&rel).unwrap();
+    for f in ["config.yaml", "model.safetensors"] {
+        std::fs::copy(fx.join(f), rel.join(f)).unwrap();
+    }
+    let (w, h) = (40, 24);
+    let ct_path = dir.path().join("ct.exr");
+    write_ct(&ct_path, &smooth_ct(w, h)).unwrap();
+    let img = Image::from_fn(w, h, 3, |x, y, c| 0.2 + 0.5 * ((x * 3 + y * 5 + c) % 17) as f32 / 17.0);
+    let src = write_image(&dir.path().join("src.exr"), &img);
+    let run = |out: &str, extra: &[&str]| {
+        let out = dir.path().join(out);
+        let mut args = vec!["relight", "--source", s(&src), "--intrinsics", s(&ct_path), "--out"];
+        let out_s = out.to_str().unwrap().to_string();
+        args.push(&out_s);
+        args.extend_from_slice(extra);
+        let r = common::run(common::cmd().env("PIXL_OFFLINE", "1").arg("--quiet").args(&args));
+        (r, out)
+    };
+    let m = s(&models);
+    let (r, default_out) = run("default.exr", &["--models", m]);
+    let r = r.ok();
+    assert!(
+        r.stderr.contains("CC BY-NC 4.0 — non-commercial use only"),
+        "{}",
+        r.stderr
+    );
+    assert!(r.stderr.contains("PIXLRelight release"), "{}", r.stderr);
+    let (r, native_out) = run("native.exr", &["--weights", s(&fx.join("native.safetensors"))]);
+    assert!(!r.ok().stderr.contains("non-commercial"));
+    let (a, b) = (
+        pixl_core::io::read_image(&default_out).unwrap(),
+        pixl_core::io::read_image(&native_out).unwrap(),
+    );
+    let d = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max);
+    assert!(d <= 1e-5, "release vs native differ by {d}");
+    assert!(
+        a.data.iter().zip(&img.data).any(|(x, y)| (x - y).abs() > 1e-3),
+        "the network changed nothing"
+    );
+    let (r, path_out) = run("path.exr", &["--weights", s(&rel.join("model.safetensors"))]);
+    assert!(r.ok().stderr.contains("non-commercial"));
+    assert_eq!(pixl_core::io::read_image(&path_out).unwrap().data, a.data);
+    let (r, _) = run("bundled.exr", &["--models", m, "--weights", "bundled"]);
+    assert!(!r.ok().stderr.contains("non-commercial"));
+    let empty = dir.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    let (r, _) = run("fallback.exr", &["--models", s(&empty), "--weights", "pixlrelight"]);
+    r.fails(&["pixlrelight"]);
+}

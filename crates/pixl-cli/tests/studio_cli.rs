@@ -92,3 +92,65 @@ fn studio_estimates_depth_with_da3_when_its_weights_are_there_and_falls_back_lab
     );
     drop(server);
 }
+
+/// `POST path` with `body` on `addr`: the status and the body as JSON.
+fn post_json(addr: &str, path: &str, body: &[u8]) -> (u16, serde_json::Value) {
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    write!(
+        s,
+        "POST {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    )
+    .unwrap();
+    s.write_all(body).unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    let status = text.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+    let body = text.split("\r\n\r\n").nth(1).unwrap_or("");
+    (
+        status,
+        serde_json::from_str(body).unwrap_or_else(|e| panic!("{e}: {text}")),
+    )
+}
+
+#[test]
+fn studio_lights_like_a_photo_when_marigold_lighting_is_on_disk_and_says_how_otherwise() {
+    let t = tempfile::tempdir().unwrap();
+    let p = photo(t.path());
+    let reference = std::fs::read(write_image(
+        &t.path().join("ref.png"),
+        &Image::from_fn(56, 42, 3, |x, _, c| [0.8, 0.5, 0.2][c] * x as f32 / 56.0),
+    ))
+    .unwrap();
+    let models = t.path().join("models");
+    common::copy_dir(
+        &repo_path("fixtures/marigold/lighting"),
+        &models.join("marigold-lighting"),
+    );
+    let (server, addr) = start(t.path(), &[p.as_os_str(), "--models".as_ref(), models.as_os_str()]);
+    assert_eq!(get_json(&addr, "/api/state")["can_like"], true);
+    let (status, v) = post_json(&addr, "/api/like?name=ref.png", &reference);
+    assert_eq!(status, 200, "{v}");
+    assert_eq!(v["like"]["reference"], "ref.png", "{v}");
+    assert!(v["like"]["estimator"]
+        .as_str()
+        .unwrap_or_default()
+        .contains("Marigold-IID Lighting"));
+    drop(server);
+
+    // Without the weights: off, and the request says how to get them.
+    let empty = t.path().join("no-models");
+    std::fs::create_dir_all(&empty).unwrap();
+    let (server, addr) = start(t.path(), &[p.as_os_str(), "--models".as_ref(), empty.as_os_str()]);
+    assert_eq!(get_json(&addr, "/api/state")["can_like"], false);
+    let (status, v) = post_json(&addr, "/api/like?name=ref.png", &reference);
+    assert_eq!(status, 404, "{v}");
+    assert!(
+        v["error"]
+            .as_str()
+            .unwrap_or_default()
+            .contains("pixl models fetch marigold-lighting"),
+        "{v}"
+    );
+    drop(server);
+}

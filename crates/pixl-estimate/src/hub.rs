@@ -1,11 +1,14 @@
-//! Where estimator weights come from: a registry of the released models this crate loads, and
-//! the lookup that finds their files on disk or downloads them once.
+//! Where pretrained weights come from: a registry of the released models the toolkit loads (the
+//! estimators of this crate and the released PIXLRelight network), and the lookup that finds their
+//! files on disk or downloads them once.
 //!
 //! # Registry
-//! [`REGISTRY`] lists every model by a short name (`da3-metric`, `da3-mono`): its Hugging Face
+//! [`REGISTRY`] lists every model by a short name (`da3-metric`, `pixlrelight`): its Hugging Face
 //! repository and revision, the files it needs (a model is a list of [`ModelFile`]s, relative
 //! paths inside the repository, so a diffusers-style folder with `unet/…`, `vae/…` fits as well as
-//! a single `model.safetensors`), its licence, its approximate size and what it is for.
+//! a single `model.safetensors`), its licence, its approximate size and what it is for. A file
+//! may carry the SHA-256 of its content ([`ModelFile::sha256`]); `pixlrelight` pins both of its
+//! files at a fixed commit.
 //!
 //! # Lookup order ([`Hub::resolve`])
 //! 1. **The models folder** (`--models DIR`, else the environment variable `PIXL_MODELS_DIR`):
@@ -26,6 +29,17 @@
 //!    caller is told the model's licence and size ([`FetchObserver::before_download`]); progress
 //!    is reported per file. `HF_ENDPOINT` (a mirror) and `HF_TOKEN` are honoured.
 //!
+//! # Pinned digests
+//! A download goes first into a staging folder (`<cache>/models--org--name/.pixl-incoming/`,
+//! itself a Hugging Face cache, so an interrupted download resumes there). A file whose registry
+//! entry pins a SHA-256 is hashed there; if the digest differs, the file is deleted and the
+//! download fails with [`HubError::DigestMismatch`] (the file, the expected and the found digest),
+//! so a corrupted or substituted file never reaches the cache. A file that passes (or pins no
+//! digest) is moved into the cache's layout (`blobs/`, a `snapshots/<commit>/` link,
+//! `refs/<revision>`). Files already on disk are not hashed on every lookup (the PIXLRelight
+//! weights are 2.6 GB); [`Resolved::verify`] (`pixl models path NAME --verify`) re-checks them and
+//! fails with [`HubError::CorruptFile`] naming the file that differs.
+//!
 //! **Offline** (`--offline`, or `PIXL_OFFLINE` / `HF_HUB_OFFLINE` set to `1`, `true`, `yes` or
 //! `on`): steps 1–2 only; a model that is not found fails at once with [`HubError::Offline`],
 //! whose message names `pixl models fetch NAME` and `--models DIR`. Nothing touches the network.
@@ -44,6 +58,10 @@ pub struct ModelFile {
     pub alt: Option<&'static str>,
     /// Approximate size in bytes (for messages; the download reports the exact size).
     pub approx_bytes: u64,
+    /// SHA-256 of `path`'s content (64 lowercase hex digits) where the registry pins one: a
+    /// download is checked against it before it is put in place, and [`Resolved::verify`]
+    /// checks the file on disk. `None`: the content is not checked. It does not apply to `alt`.
+    pub sha256: Option<&'static str>,
 }
 
 impl ModelFile {
@@ -52,6 +70,7 @@ impl ModelFile {
             path,
             alt: None,
             approx_bytes,
+            sha256: None,
         }
     }
 
@@ -60,6 +79,16 @@ impl ModelFile {
             path,
             alt: Some(alt),
             approx_bytes,
+            sha256: None,
+        }
+    }
+
+    const fn pinned(path: &'static str, approx_bytes: u64, sha256: &'static str) -> Self {
+        Self {
+            path,
+            alt: None,
+            approx_bytes,
+            sha256: Some(sha256),
         }
     }
 
@@ -135,7 +164,23 @@ const MARIGOLD_IID_FILES: &[ModelFile] = &[
     ModelFile::new("tokenizer/tokenizer_config.json", 1_000),
 ];
 
-/// Every model this crate knows, by name.
+/// The released PIXLRelight checkpoint (code: <https://github.com/mlfarinha/pixlrelight>), pinned
+/// to one commit with the SHA-256 of each file.
+const PIXLRELIGHT_FILES: &[ModelFile] = &[
+    ModelFile::pinned(
+        "config.yaml",
+        4_000,
+        "a3ef2cada8a223aee15b2e85d6627980962ea5446242d0d8ec24791ec2e21021",
+    ),
+    // About 641 M parameters in f32.
+    ModelFile::pinned(
+        "model.safetensors",
+        2_560_000_000,
+        "69c2bd11c2f272754f7080bc33e4b049fd334ea5d596df0c475f51c93699710e",
+    ),
+];
+
+/// Every model the toolkit knows, by name.
 pub const REGISTRY: &[ModelSpec] = &[
     ModelSpec {
         name: "da3-metric",
@@ -172,6 +217,15 @@ pub const REGISTRY: &[ModelSpec] = &[
         licence: "OpenRAIL++-M",
         licence_url: "https://huggingface.co/prs-eth/marigold-iid-lighting-v1-1",
         purpose: "Marigold-IID Lighting: albedo, diffuse shading and non-diffuse residual of a photo (linear)",
+    },
+    ModelSpec {
+        name: "pixlrelight",
+        repo: "mlfarinha/pixlrelight",
+        revision: "5def370459c15ee36c524068bb8338b3f6c6d6c0",
+        files: PIXLRELIGHT_FILES,
+        licence: "CC BY-NC 4.0 — non-commercial use only",
+        licence_url: "https://huggingface.co/mlfarinha/pixlrelight",
+        purpose: "PIXLRelight (the paper's released model): relights a photo from target intrinsics",
     },
 ];
 
@@ -232,8 +286,59 @@ or pass `--models DIR` with the files in DIR/{model}/ ({files})"
         file: String,
         reason: String,
     },
+    /// A downloaded file whose SHA-256 is not the one the registry pins; it was deleted before
+    /// it reached the cache.
+    #[error(
+        "downloaded `{file}` of model `{model}` has sha256 {found}, expected {expected}; \
+the file was deleted. Run the command again; if it fails the same way, the server (HF_ENDPOINT) serves other content"
+    )]
+    DigestMismatch {
+        model: String,
+        file: String,
+        expected: String,
+        found: String,
+    },
+    /// A file on disk whose SHA-256 is not the one the registry pins ([`Resolved::verify`]).
+    #[error(
+        "{}: `{file}` of model `{model}` has sha256 {found}, expected {expected}; \
+delete it and run `pixl models fetch {model}`",
+        path.display()
+    )]
+    CorruptFile {
+        model: String,
+        file: String,
+        path: PathBuf,
+        expected: String,
+        found: String,
+    },
     #[error("{}: {source}", path.display())]
     Io { path: PathBuf, source: std::io::Error },
+}
+
+/// SHA-256 of everything `reader` yields, as 64 lowercase hex digits.
+pub fn sha256_reader(mut reader: impl std::io::Read) -> std::io::Result<String> {
+    use sha2::Digest;
+    let mut hasher = sha2::Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    loop {
+        match reader.read(&mut buf) {
+            Ok(0) => break,
+            Ok(n) => hasher.update(&buf[..n]),
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(format!("{:x}", hasher.finalize()))
+}
+
+/// SHA-256 of the file at `path` (symlinks followed), as 64 lowercase hex digits.
+pub fn sha256_file(path: &Path) -> Result<String, HubError> {
+    let io = |source| HubError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let file = std::fs::File::open(path).map_err(io)?;
+    sha256_reader(file).map_err(io)
 }
 
 /// Where to look and whether downloads are allowed.
@@ -330,6 +435,59 @@ impl Resolved {
     pub fn files(&self) -> Vec<PathBuf> {
         self.spec.files.iter().map(|f| self.file(f.path)).collect()
     }
+
+    /// Hashes every file whose registry entry pins a SHA-256 and compares (the whole file is
+    /// read: seconds per GB); files without a pinned digest are listed but not read. Fails with
+    /// [`HubError::CorruptFile`] at the first file that differs.
+    pub fn verify(&self, observer: &mut dyn FetchObserver) -> Result<Vec<FileCheck>, HubError> {
+        let mut checks = Vec::with_capacity(self.spec.files.len());
+        for f in self.spec.files {
+            let path = self.file(f.path);
+            let (path, expected) = match (f.sha256, f.alt) {
+                // The digest is that of `path`; an alternative found in its place is not checked.
+                (Some(expected), _) if is_file(&path) => (path, Some(expected)),
+                (_, Some(alt)) if !is_file(&path) => (self.file(alt), None),
+                _ => (path, None),
+            };
+            let Some(expected) = expected else {
+                checks.push(FileCheck {
+                    file: f.path,
+                    path,
+                    sha256: None,
+                });
+                continue;
+            };
+            let bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+            observer.file_checking(f.path, bytes);
+            let found = sha256_file(&path)?;
+            if !found.eq_ignore_ascii_case(expected) {
+                return Err(HubError::CorruptFile {
+                    model: self.spec.name.to_string(),
+                    file: f.path.to_string(),
+                    path,
+                    expected: expected.to_string(),
+                    found,
+                });
+            }
+            checks.push(FileCheck {
+                file: f.path,
+                path,
+                sha256: Some(found),
+            });
+        }
+        Ok(checks)
+    }
+}
+
+/// One file as [`Resolved::verify`] found it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FileCheck {
+    /// The file's registry path.
+    pub file: &'static str,
+    /// Where it is on disk.
+    pub path: PathBuf,
+    /// Its SHA-256, equal to the pinned one; `None` when the registry pins none (not read).
+    pub sha256: Option<String>,
 }
 
 /// Told about a download before and while it happens.
@@ -343,6 +501,9 @@ pub trait FetchObserver {
     fn file_progress(&mut self, _bytes: u64) {}
     /// The current file is complete.
     fn file_finished(&mut self) {}
+    /// The SHA-256 of `file` (`bytes` long) is being computed, after its download or by
+    /// [`Resolved::verify`].
+    fn file_checking(&mut self, _file: &str, _bytes: u64) {}
 }
 
 /// A [`FetchObserver`] that ignores everything.
@@ -482,14 +643,32 @@ impl Hub {
         }
     }
 
-    /// Downloads the files missing from the target cache's current snapshot.
+    /// Downloads the files missing from the target cache's current snapshot (through the
+    /// staging folder; see the module docs).
     fn download(&self, spec: &'static ModelSpec, observer: &mut dyn FetchObserver) -> Result<Resolved, HubError> {
         let cache = self.download_target()?;
         std::fs::create_dir_all(&cache).map_err(|source| HubError::Io {
             path: cache.clone(),
             source,
         })?;
-        let mut builder = hf_hub::api::sync::ApiBuilder::from_cache(hf_hub::Cache::new(cache.clone()))
+        let staging = staging_root(&cache, spec);
+        let result = self.download_via(spec, &cache, &staging, observer);
+        clean_staging(&staging);
+        result
+    }
+
+    /// [`Hub::download`] with `hf-hub` writing into `staging`; each file is checked and moved
+    /// into `cache` as soon as it is complete.
+    fn download_via(
+        &self,
+        spec: &'static ModelSpec,
+        cache: &Path,
+        staging: &Path,
+        observer: &mut dyn FetchObserver,
+    ) -> Result<Resolved, HubError> {
+        let cache = cache.to_path_buf();
+        remove_dangling_links(staging);
+        let mut builder = hf_hub::api::sync::ApiBuilder::from_cache(hf_hub::Cache::new(staging.to_path_buf()))
             .with_progress(false)
             .with_retries(2);
         if let Some(e) = &self.opts.endpoint {
@@ -530,8 +709,10 @@ impl Hub {
                 let progress = ProgressAdapter {
                     observer: &mut *observer,
                 };
-                repo.download_with_progress(f.path, progress)
+                let staged = repo
+                    .download_with_progress(f.path, progress)
                     .map_err(|e| err(f.path, e.to_string()))?;
+                install(spec, f, &cache, staging, &staged, observer)?;
             }
         }
         Err(err(
@@ -539,6 +720,154 @@ impl Hub {
             "the repository changed during the download; run the command again".into(),
         ))
     }
+}
+
+/// The staging folder of `spec`'s downloads into `cache` (a Hugging Face cache of its own).
+fn staging_root(cache: &Path, spec: &ModelSpec) -> PathBuf {
+    cache.join(spec.cache_folder()).join(".pixl-incoming")
+}
+
+/// Removes the staging folder unless it holds a partial download (`*.part`: resumable, or in
+/// progress in another process). Failures are ignored: the folder is only clutter.
+fn clean_staging(staging: &Path) {
+    fn has_part(dir: &Path) -> bool {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return false;
+        };
+        entries.filter_map(Result::ok).any(|e| {
+            let p = e.path();
+            match e.file_type() {
+                Ok(t) if t.is_dir() => has_part(&p),
+                _ => p.extension().is_some_and(|x| x == "part"),
+            }
+        })
+    }
+    if staging.is_dir() && !has_part(staging) {
+        let _ = std::fs::remove_dir_all(staging);
+    }
+}
+
+/// Removes the links under `dir` whose target is gone: snapshot entries of the staging cache
+/// left by an interrupted run after their file was moved, which `hf-hub` would refuse to
+/// replace.
+fn remove_dangling_links(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.filter_map(Result::ok) {
+        let p = e.path();
+        match e.file_type() {
+            Ok(t) if t.is_symlink() && !p.exists() => {
+                let _ = std::fs::remove_file(&p);
+            }
+            Ok(t) if t.is_dir() => remove_dangling_links(&p),
+            _ => {}
+        }
+    }
+}
+
+/// Moves a file `hf-hub` downloaded into the staging cache (`staged`: its
+/// `snapshots/<commit>/<file>` entry there) into `cache`, after checking its SHA-256 if the
+/// registry pins one. On a mismatch the staged file is deleted and nothing is moved.
+fn install(
+    spec: &ModelSpec,
+    file: &ModelFile,
+    cache: &Path,
+    staging: &Path,
+    staged: &Path,
+    observer: &mut dyn FetchObserver,
+) -> Result<(), HubError> {
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| HubError::Io { path, source }
+    };
+    let staged_snapshots = staging.join(spec.cache_folder()).join("snapshots");
+    let commit = staged
+        .strip_prefix(&staged_snapshots)
+        .ok()
+        .and_then(|rest| rest.components().next())
+        .and_then(|c| c.as_os_str().to_str())
+        // The commit comes from a response header: it must be a plain name to become a folder.
+        .filter(|c| !c.is_empty() && c.bytes().all(|b| b.is_ascii_alphanumeric()))
+        .map(str::to_string)
+        .ok_or_else(|| HubError::Download {
+            model: spec.name.to_string(),
+            repo: spec.repo.to_string(),
+            file: file.path.to_string(),
+            reason: format!("the server named an unusable commit (file at {})", staged.display()),
+        })?;
+    // `hf-hub` links the snapshot entry to `blobs/<etag>`, or (where links are not allowed)
+    // moves the file there itself.
+    let linked = std::fs::symlink_metadata(staged)
+        .map_err(io(staged))?
+        .file_type()
+        .is_symlink();
+    let content = if linked {
+        std::fs::canonicalize(staged).map_err(io(staged))?
+    } else {
+        staged.to_path_buf()
+    };
+    if let Some(expected) = file.sha256 {
+        let bytes = std::fs::metadata(&content).map(|m| m.len()).unwrap_or(0);
+        observer.file_checking(file.path, bytes);
+        let found = sha256_file(&content)?;
+        if !found.eq_ignore_ascii_case(expected) {
+            let _ = std::fs::remove_file(staged);
+            let _ = std::fs::remove_file(&content);
+            return Err(HubError::DigestMismatch {
+                model: spec.name.to_string(),
+                file: file.path.to_string(),
+                expected: expected.to_string(),
+                found,
+            });
+        }
+    }
+    let root = cache.join(spec.cache_folder());
+    let pointer = root.join("snapshots").join(&commit).join(file.path);
+    if let Some(parent) = pointer.parent() {
+        std::fs::create_dir_all(parent).map_err(io(parent))?;
+    }
+    // A dangling link or an older copy left by an interrupted run.
+    if std::fs::symlink_metadata(&pointer).is_ok() {
+        std::fs::remove_file(&pointer).map_err(io(&pointer))?;
+    }
+    match content.file_name().filter(|_| linked) {
+        Some(etag) => {
+            let blobs = root.join("blobs");
+            std::fs::create_dir_all(&blobs).map_err(io(&blobs))?;
+            let blob = blobs.join(etag);
+            std::fs::rename(&content, &blob).map_err(io(&blob))?;
+            link_blob(&blob, etag, file.path, &pointer).map_err(io(&pointer))?;
+            let _ = std::fs::remove_file(staged);
+        }
+        None => std::fs::rename(&content, &pointer).map_err(io(&pointer))?,
+    }
+    let reference = root.join("refs").join(spec.revision);
+    if let Some(parent) = reference.parent() {
+        std::fs::create_dir_all(parent).map_err(io(parent))?;
+    }
+    std::fs::write(&reference, commit.as_bytes()).map_err(io(&reference))
+}
+
+/// Points the snapshot entry `pointer` (of the repository file `file`) at `blobs/<etag>` with a
+/// relative link, as the Python cache does.
+#[cfg(unix)]
+fn link_blob(_blob: &Path, etag: &std::ffi::OsStr, file: &str, pointer: &Path) -> std::io::Result<()> {
+    // From `snapshots/<commit>/<dirs of file>/` up to the model's folder.
+    let mut target = PathBuf::new();
+    for _ in 0..2 + file.matches('/').count() {
+        target.push("..");
+    }
+    target.push("blobs");
+    target.push(etag);
+    std::os::unix::fs::symlink(target, pointer)
+}
+
+/// Where links are not available the file itself goes into the snapshot (as the Python cache
+/// does without symlink rights).
+#[cfg(not(unix))]
+fn link_blob(blob: &Path, _etag: &std::ffi::OsStr, _file: &str, pointer: &Path) -> std::io::Result<()> {
+    std::fs::rename(blob, pointer)
 }
 
 /// Forwards `hf-hub`'s progress calls to a [`FetchObserver`].
@@ -604,12 +933,15 @@ fn cached_snapshot(cache: &Path, spec: &ModelSpec) -> Result<Option<(String, Pat
         .map(|(d, n)| (n, d)))
 }
 
-/// The files of `spec` not in the snapshot `refs/<revision>` names (all of them without a ref).
+/// The files of `spec` not in the snapshot `refs/<revision>` names, else (no ref file) in the
+/// snapshot named like the revision (a pinned commit); all of them if there is neither.
 fn missing_in_current_snapshot(cache: &Path, spec: &ModelSpec) -> Vec<ModelFile> {
+    let snapshots = cache.join(spec.cache_folder()).join("snapshots");
     let dir = read_ref(cache, spec)
         .ok()
         .flatten()
-        .map(|c| cache.join(spec.cache_folder()).join("snapshots").join(c));
+        .map(|c| snapshots.join(c))
+        .or_else(|| Some(snapshots.join(spec.revision)).filter(|d| d.is_dir()));
     spec.files
         .iter()
         .filter(|f| dir.as_ref().is_none_or(|d| !f.present_in(d)))
@@ -873,5 +1205,169 @@ mod tests {
         assert_eq!(human_bytes(2_500_000), "2 MB");
         assert_eq!(human_bytes(999), "999 B");
         assert!(lookup("da3-metric").unwrap().approx_bytes() > 1_000_000_000);
+    }
+
+    /// Digests computed elsewhere (FIPS 180-2 examples), not by this code.
+    #[test]
+    fn sha256_of_known_inputs() {
+        assert_eq!(
+            sha256_reader(&b"abc"[..]).unwrap(),
+            "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+        );
+        assert_eq!(
+            sha256_reader(&b""[..]).unwrap(),
+            "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855"
+        );
+        // Longer than the read buffer: 1 000 000 times `a`.
+        let million = vec![b'a'; 1_000_000];
+        let t = tempfile::tempdir().unwrap();
+        let p = t.path().join("a");
+        write(&p, &million);
+        assert_eq!(
+            sha256_file(&p).unwrap(),
+            "cdc76e5c9914fb9281a1c7e284d73e67f1809a48a497200e046d39ccc7112cd0"
+        );
+        assert!(matches!(
+            sha256_file(&t.path().join("absent")),
+            Err(HubError::Io { .. })
+        ));
+    }
+
+    #[test]
+    fn pixlrelight_is_registered_at_a_pinned_commit() {
+        let spec = lookup("pixlrelight").unwrap();
+        assert_eq!(spec.repo, "mlfarinha/pixlrelight");
+        assert_eq!(spec.revision, "5def370459c15ee36c524068bb8338b3f6c6d6c0");
+        assert_eq!(spec.licence, "CC BY-NC 4.0 — non-commercial use only");
+        assert_eq!(spec.licence_url, "https://huggingface.co/mlfarinha/pixlrelight");
+        assert_eq!(spec.cache_folder(), "models--mlfarinha--pixlrelight");
+        let files: Vec<_> = spec.files.iter().map(|f| (f.path, f.sha256)).collect();
+        assert_eq!(
+            files,
+            [
+                (
+                    "config.yaml",
+                    Some("a3ef2cada8a223aee15b2e85d6627980962ea5446242d0d8ec24791ec2e21021")
+                ),
+                (
+                    "model.safetensors",
+                    Some("69c2bd11c2f272754f7080bc33e4b049fd334ea5d596df0c475f51c93699710e")
+                ),
+            ]
+        );
+        // 641 M f32 parameters.
+        assert!((2_500_000_000..2_600_000_000).contains(&spec.approx_bytes()));
+        // Every pinned digest in the registry is 64 lowercase hex digits; the other models pin none.
+        for m in REGISTRY {
+            for f in m.files {
+                if let Some(d) = f.sha256 {
+                    assert!(
+                        d.len() == 64 && d.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)),
+                        "{}: {}",
+                        m.name,
+                        f.path
+                    );
+                } else {
+                    assert_ne!(m.name, "pixlrelight");
+                }
+            }
+        }
+    }
+
+    /// A cache holding the pinned commit's snapshot without a ref file (as the Python tools
+    /// write it for a commit revision): found, and only the absent file counts as missing.
+    #[test]
+    fn a_pinned_commit_is_found_without_a_ref() {
+        let t = tempfile::tempdir().unwrap();
+        let spec = lookup("pixlrelight").unwrap();
+        let snap = fake_cache(t.path(), spec, spec.revision, &["config.yaml"], false);
+        assert_eq!(missing_in_current_snapshot(t.path(), spec), vec![spec.files[1]]);
+        write(&snap.join("model.safetensors"), b"w");
+        let hub = Hub::new(HubOptions {
+            hf_cache: Some(t.path().to_path_buf()),
+            offline: true,
+            ..Default::default()
+        });
+        assert_eq!(hub.locate(spec).unwrap().map(|r| r.dir), Some(snap));
+    }
+
+    /// Counts the files whose digest is computed.
+    #[derive(Default)]
+    struct Checked(Vec<(String, u64)>);
+    impl FetchObserver for Checked {
+        fn file_checking(&mut self, file: &str, bytes: u64) {
+            self.0.push((file.to_string(), bytes));
+        }
+    }
+
+    /// `verify` reads only the pinned files, accepts matching ones, names the first that differs.
+    #[test]
+    fn verify_checks_pinned_files_on_disk() {
+        static FILES: &[ModelFile] = &[
+            ModelFile::new("config.json", 2),
+            ModelFile::pinned(
+                "w.bin",
+                3,
+                "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad",
+            ),
+        ];
+        static SPEC: ModelSpec = ModelSpec {
+            name: "pinned-test",
+            repo: "test/pinned",
+            revision: "main",
+            files: FILES,
+            licence: "test",
+            licence_url: "",
+            purpose: "",
+        };
+        let t = tempfile::tempdir().unwrap();
+        let dir = t.path().join("pinned-test");
+        write(&dir.join("config.json"), b"{}");
+        write(&dir.join("w.bin"), b"abc");
+        let r = Resolved {
+            spec: &SPEC,
+            source: Source::ModelsDir(dir.clone()),
+            dir: dir.clone(),
+        };
+        let mut seen = Checked::default();
+        let checks = r.verify(&mut seen).unwrap();
+        assert_eq!(seen.0, [("w.bin".to_string(), 3)]);
+        assert_eq!(
+            checks,
+            [
+                FileCheck {
+                    file: "config.json",
+                    path: dir.join("config.json"),
+                    sha256: None
+                },
+                FileCheck {
+                    file: "w.bin",
+                    path: dir.join("w.bin"),
+                    sha256: Some("ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad".into())
+                },
+            ]
+        );
+        write(&dir.join("w.bin"), b"");
+        match r.verify(&mut Silent).unwrap_err() {
+            HubError::CorruptFile {
+                model,
+                file,
+                path,
+                expected,
+                found,
+            } => {
+                assert_eq!((model.as_str(), file.as_str()), ("pinned-test", "w.bin"));
+                assert_eq!(path, dir.join("w.bin"));
+                assert_eq!(
+                    expected,
+                    "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+                );
+                assert_eq!(
+                    found,
+                    "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855"
+                );
+            }
+            other => panic!("expected CorruptFile, got {other:?}"),
+        }
     }
 }

@@ -25,6 +25,8 @@ pub enum PipelineError {
     #[error(transparent)]
     Checkpoint(#[from] pixl_model::checkpoint::CheckpointError),
     #[error(transparent)]
+    Official(#[from] pixl_model::official::OfficialError),
+    #[error(transparent)]
     Estimate(#[from] pixl_estimate::EstimateError),
     #[error(transparent)]
     Candle(#[from] candle_core::Error),

@@ -1,14 +1,21 @@
 //! The estimators the pipeline plugs in: [`Da3Depth`] runs Depth Anything 3 (metric or mono,
-//! `pixl_estimate::da3`) as a [`DepthEstimator`]. Where its weights come from (a models folder,
-//! the Hugging Face cache, a download with the licence shown) is the caller's business: it hands
-//! over the folder that holds them.
+//! `pixl_estimate::da3`) as a [`DepthEstimator`]; [`MarigoldLighting`] runs Marigold-IID-Lighting
+//! (`pixl_estimate::marigold`) as a [`LightingEstimator`]. Where their weights come from (a
+//! models folder, the Hugging Face cache, a download with the licence shown) is the caller's
+//! business: it hands over the folder that holds them, or the loaded model.
 use crate::depth::{DepthEstimator, DepthKind, EstimatedDepth};
 use crate::error::{PipelineError, Result};
+use crate::like::{Decomposition, LightingEstimator};
+use crate::observe::{Observer, Stage};
 use candle_core::Device;
 use pixl_core::Image;
 use pixl_estimate::da3::{Da3, Da3Options, Da3Variant};
+use pixl_estimate::marigold::{IidPrediction, IidVariant, Marigold};
 use pixl_render::depth::DepthMap;
 use std::path::Path;
+
+/// The options of a Marigold run (steps, resolution, ensemble, seed), for [`MarigoldLighting`].
+pub use pixl_estimate::marigold::MarigoldOptions;
 
 /// Smallest photo side the estimators accept (one 14-pixel ViT patch).
 pub const MIN_SIDE: usize = 14;
@@ -122,5 +129,76 @@ impl DepthEstimator for Da3Depth {
             },
             sky_fraction: sky as f64 / (w * h).max(1) as f64,
         })
+    }
+}
+
+/// Marigold-IID-Lighting (`prs-eth/marigold-iid-lighting-v1-1`, OpenRAIL++-M) as a
+/// [`LightingEstimator`]: its albedo, diffuse shading and non-diffuse residual are linear, the
+/// paper's A, S, R.
+pub struct MarigoldLighting {
+    net: Marigold,
+    /// Steps, resolution, ensemble and seed of every decomposition.
+    pub options: MarigoldOptions,
+    /// How the checkpoint is named in messages (`marigold-lighting`).
+    pub label: String,
+}
+
+impl MarigoldLighting {
+    /// Wraps a loaded checkpoint; one of another variant (Appearance) is refused.
+    pub fn new(net: Marigold, options: MarigoldOptions, label: &str) -> Result<MarigoldLighting> {
+        if net.variant() != Some(IidVariant::Lighting) {
+            return Err(PipelineError::input(format!(
+                "`{label}` predicts {}, not Marigold-IID Lighting's albedo, shading and residual",
+                net.pipeline().target_names().join(", ")
+            )));
+        }
+        Ok(MarigoldLighting {
+            net,
+            options,
+            label: label.to_string(),
+        })
+    }
+
+    /// Loads the checkpoint in `dir` (the official diffusers layout) on `device`.
+    pub fn load(dir: &Path, options: MarigoldOptions, label: &str, device: &Device) -> Result<MarigoldLighting> {
+        let net = Marigold::load(dir, device)
+            .map_err(|e| PipelineError::from(e).context(format!("loading `{label}` from {}", dir.display())))?;
+        Self::new(net, options, label)
+    }
+
+    pub fn model(&self) -> &Marigold {
+        &self.net
+    }
+}
+
+impl Decomposition {
+    /// From a Marigold-IID-Lighting prediction (its `albedo`, `shading` and `residual` maps).
+    pub fn from_prediction(p: &IidPrediction) -> Result<Decomposition> {
+        let get = |n: &str| {
+            p.get(n)
+                .cloned()
+                .ok_or_else(|| PipelineError::input(format!("the prediction has no {n} map")))
+        };
+        Ok(Decomposition {
+            albedo: get("albedo")?,
+            shading: get("shading")?,
+            residual: get("residual")?,
+        })
+    }
+}
+
+impl LightingEstimator for MarigoldLighting {
+    fn name(&self) -> String {
+        format!("Marigold-IID Lighting ({})", self.label)
+    }
+
+    fn decompose(&self, photo: &Image, observer: &dyn Observer) -> Result<Decomposition> {
+        let pred = self
+            .net
+            .predict(photo, &self.options, &mut |p| {
+                observer.progress(Stage::Intrinsics, p.done as u64, p.total as u64)
+            })
+            .map_err(PipelineError::from)?;
+        Decomposition::from_prediction(&pred)
     }
 }

@@ -1,5 +1,5 @@
 //! `pixl-pipeline`: relighting a photograph, stage by stage, as a library (paper §3.4) — the
-//! code behind `pixl relight`, `pixl reconstruct` and `pixl studio`.
+//! code behind `pixl relight`, `pixl reconstruct`, `pixl demo` and `pixl studio`.
 //!
 //! ```text
 //! Photo ──► depth ──► Geometry ──► + lights ──► render passes ──► C_T ──► network ──► relit
@@ -13,8 +13,11 @@
 //!   memory, written as a scene folder only when asked.
 //! - [`lights`]: one light as the user says it ([`lights::LightSpec`]), placed in the scene.
 //! - [`render`]: the scene under its lights → passes → C_T.
-//! - [`relight`]: the network ([`relight::Network`], bundled weights by default), its memory
+//! - [`relight`]: the network ([`relight::Network`]: ours, the paper's released checkpoint, or
+//!   the bundled weights by default), its memory
 //!   plan, and the relit photo at full size.
+//! - [`like`]: the target lighting read off another photo instead: its `C_T` from a
+//!   [`like::LightingEstimator`] (Marigold-IID-Lighting in [`estimators`]), then the network.
 //! - [`observe`]: how a caller watches long stages ([`observe::Observer`]).
 //!
 //! Typed errors ([`PipelineError`]); no stage prints: notes and progress go to the observer.
@@ -23,6 +26,7 @@ pub mod error;
 pub mod estimators;
 pub mod exif;
 pub mod lights;
+pub mod like;
 pub mod observe;
 pub mod photo;
 pub mod reconstruct;

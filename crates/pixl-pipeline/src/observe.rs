@@ -11,6 +11,9 @@ pub enum Stage {
     Depth,
     /// Building the mesh and textures.
     Reconstruct,
+    /// Estimating a photo's intrinsics (albedo, shading, residual; progress: denoising steps
+    /// and decodes).
+    Intrinsics,
     /// Path-tracing the passes (progress: rows).
     Render,
     /// The network (progress: its blocks).
@@ -22,6 +25,7 @@ impl Stage {
         match self {
             Stage::Depth => "depth",
             Stage::Reconstruct => "reconstruct",
+            Stage::Intrinsics => "intrinsics",
             Stage::Render => "rendering",
             Stage::Network => "network",
         }

@@ -9,8 +9,12 @@
 //! 8-bit weight copies, the full-size buffers) and a request that does not fit the limit is
 //! refused with the figure and a working size that fits ([`check_budget`]).
 //!
-//! Weights: a file, else the bundled demo weights compiled into the binary
-//! ([`BUNDLED_WEIGHTS`], a `tiny` model; `assets/demo-weights/README.md`).
+//! Weights: a file — one of ours (our format, config in the metadata) or the paper's released
+//! checkpoint (`model.safetensors` with its `config.yaml` beside it, loaded unchanged through
+//! `pixl_model::official`; [`Network::licence`] then holds its non-commercial licence, which
+//! callers show) — else the bundled demo weights compiled into the binary ([`BUNDLED_WEIGHTS`], a
+//! `tiny` model; `assets/demo-weights/README.md`). Both kinds take the photo as sRGB values in
+//! `[0, 1]` and are edge-padded to their patch size, so everything after loading is shared.
 use crate::error::{PipelineError, Result};
 use crate::observe::{Observer, Stage};
 use candle_core::{DType, Device};
@@ -35,16 +39,29 @@ pub struct Network {
     pub dtype: DType,
     /// Bytes of the 8-bit weight copies (`int8`; 0 otherwise), held beside the f32 weights.
     pub int8_bytes: u64,
+    /// The weights' licence where it restricts use (the released checkpoint's
+    /// [`pixl_model::official::LICENCE`]); `None` for ours.
+    pub licence: Option<&'static str>,
 }
 
 impl Network {
     /// Loads `weights` (or the bundled ones) on `device` in `dtype`; with `int8`, the linear
     /// layers are quantized where the CPU has AVX-512 VNNI (a warning and f32 elsewhere).
     pub fn load(weights: Option<&Path>, dtype: DType, device: &Device, int8: bool) -> Result<Network> {
+        let mut licence = None;
         let (cfg, mut model, name) = match weights {
-            Some(w) => {
+            Some(w) if is_native(w)? => {
                 let (cfg, model) = pixl_model::load(w, device, dtype)?;
                 (cfg, model, w.display().to_string())
+            }
+            Some(w) => {
+                let table = pixl_model::official::name_table(None)?;
+                let off = pixl_model::official::load(w, None, &table, device, dtype)?;
+                for note in &off.inspection.notes {
+                    tracing::info!("{}: {note}", w.display());
+                }
+                licence = Some(pixl_model::official::LICENCE);
+                (off.config, off.model, format!("PIXLRelight release {}", w.display()))
             }
             None => {
                 let (cfg, model) = pixl_model::load_bytes(Path::new(BUNDLED_NAME), BUNDLED_WEIGHTS, device, dtype)?;
@@ -69,8 +86,25 @@ impl Network {
             name,
             dtype,
             int8_bytes,
+            licence,
         })
     }
+
+    /// One line naming the weights, with their licence where it restricts use.
+    pub fn describe(&self) -> String {
+        let params = self.cfg.param_count() as f64 / 1e6;
+        match self.licence {
+            Some(l) => format!("weights: {} ({params:.1} M parameters) — licence {l}", self.name),
+            None => format!("weights: {} ({params:.1} M parameters)", self.name),
+        }
+    }
+}
+
+/// Whether `path` is one of our checkpoints (our `format` in its metadata) rather than a file
+/// for the released model's loader. Reads the header only.
+pub fn is_native(path: &Path) -> Result<bool> {
+    let (_, meta) = pixl_model::official::read_header(path)?;
+    Ok(meta.get("format").map(String::as_str) == Some(pixl_model::checkpoint::FORMAT))
 }
 
 /// Bytes of memory available now (Linux `MemAvailable`), if known.

@@ -122,6 +122,17 @@ function setState(s) {
     $("after").dataset.kind = "";
   }
   setImage("p-preview", "preview", pv);
+  const like = s.like;
+  $("like-panel").hidden = !like;
+  setImage("p-like", "like", like ? "l" + like.id : null);
+  if (like) {
+    $("like-caption").textContent = "relit like " + like.reference +
+      (like.aspect_differs ? " (another frame shape: stretched)" : "");
+  }
+  $("like-button").classList.toggle("disabled", !s.can_like || !s.photo);
+  $("like-button").title = s.can_like
+    ? "Relight the photo with the lighting of another photo of the same view (its intrinsics from Marigold-IID-Lighting)"
+    : "Needs Marigold-IID-Lighting's weights on disk (pixl models fetch marigold-lighting)";
   for (const n of ["render", "albedo", "shading", "residual", "relit"]) setImage("p-" + n, n, rk);
 
   // Status line.
@@ -366,6 +377,17 @@ function openFile(file) {
   return upload("/api/photo", file);
 }
 $("photo-file").onchange = (ev) => { if (ev.target.files[0]) upload("/api/photo", ev.target.files[0]); ev.target.value = ""; };
+$("like-file").onchange = (ev) => {
+  const f = ev.target.files[0];
+  ev.target.value = "";
+  if (!f) return;
+  $("status").textContent = "reading the lighting of " + f.name + " …";
+  run(async () => {
+    const res = await api("POST", "/api/like?name=" + encodeURIComponent(f.name), f, true);
+    setState(res.state);
+    $("status").textContent = "relit like " + f.name + " (panel on the right)";
+  });
+};
 $("depth-file").onchange = (ev) => {
   if (ev.target.files[0]) upload("/api/depth?kind=" + $("depth-kind").value, ev.target.files[0]);
   ev.target.value = "";

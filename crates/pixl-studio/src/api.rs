@@ -48,6 +48,7 @@ pub fn router(studio: Studio) -> Router {
         .route("/api/lights", get(lights).post(add_light).put(set_lights))
         .route("/api/lights/{id}", put(update_light).delete(delete_light))
         .route("/api/preset", post(preset))
+        .route("/api/like", post(like))
         .route("/api/undo", post(undo))
         .route("/api/redo", post(redo))
         .route("/api/image/{name}", get(image))
@@ -185,6 +186,19 @@ async fn depth(
     let s2 = s.clone();
     blocking(move || s2.load_depth_bytes(&bytes, &name, kind)).await?;
     Ok(Json(s.state_json()))
+}
+
+/// "Light like this photo": the body is the reference photo (PNG or JPEG).
+async fn like(
+    State(s): State<Studio>,
+    q: Query<NameQuery>,
+    b: std::result::Result<Bytes, BytesRejection>,
+) -> Result<Json<Value>> {
+    let bytes = body(b, s.config().max_upload_bytes)?;
+    let name = q.name.clone().unwrap_or_else(|| "reference".into());
+    let s2 = s.clone();
+    let like = blocking(move || s2.relight_like_bytes(&bytes, &name)).await?;
+    Ok(Json(json!({"like": like, "state": s.state_json()})))
 }
 
 async fn lights(State(s): State<Studio>) -> Json<Value> {

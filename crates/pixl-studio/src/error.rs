@@ -41,6 +41,9 @@ pub enum StudioError {
     Candle(#[from] candle_core::Error),
     #[error(transparent)]
     Blender(#[from] pixl_render::blender::BlenderError),
+    /// A stage of `pixl_pipeline` failed (boxed: it is large).
+    #[error(transparent)]
+    Pipeline(Box<pixl_pipeline::PipelineError>),
     #[error("{path}: {source}")]
     Io {
         path: std::path::PathBuf,
@@ -67,6 +70,9 @@ impl StudioError {
             | StudioError::Core(pixl_core::CoreError::Empty { .. })
             | StudioError::Core(pixl_core::CoreError::UnknownExtension { .. }) => StatusCode::BAD_REQUEST,
             StudioError::Core(pixl_core::CoreError::TooLarge { .. }) => StatusCode::PAYLOAD_TOO_LARGE,
+            StudioError::Pipeline(e) if matches!(**e, pixl_pipeline::PipelineError::Input(_)) => {
+                StatusCode::BAD_REQUEST
+            }
             _ => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -76,6 +82,12 @@ impl StudioError {
             path: path.to_owned(),
             source,
         }
+    }
+}
+
+impl From<pixl_pipeline::PipelineError> for StudioError {
+    fn from(e: pixl_pipeline::PipelineError) -> Self {
+        StudioError::Pipeline(Box::new(e))
     }
 }
 

@@ -12,12 +12,18 @@
 //!
 //! **Undo / redo** keep snapshots of the light list. A change sent with `coalesce` (a drag, a
 //! slider) merges into the previous undo step when that step changed the same light.
+//!
+//! **Light like a photo** ([`Studio::relight_like_bytes`]) is apart from the lights: the
+//! reference photo's `C_T` (`pixl_pipeline::like::target_ct`, at the working size) and the
+//! network on the photo at the working size; the result is kept until the next one or a new
+//! photo, and never touches the lights, their history or the generation.
 use crate::error::{Result, StudioError};
 use crate::geometry::{Coarse, DepthEstimator, DepthKind, GeometrySource};
 use crate::lights::{environment, LightKind, LightPatch, StudioLight};
 use crate::pipeline::{self, Stage, StageError, StageOutput};
 use crate::preview::{self, GBuffer};
 use pixl_core::Image;
+use pixl_pipeline::like::LightingEstimator;
 use pixl_render::Scene;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
@@ -27,7 +33,6 @@ use std::time::{Duration, Instant};
 
 // The bundled demo weights (a `tiny` model; `assets/demo-weights/README.md`), as `pixl relight`
 // loads them.
-use pixl_pipeline::relight::{BUNDLED_NAME, BUNDLED_WEIGHTS};
 
 /// How the studio works; [`StudioConfig::default`] is what `pixl studio` uses.
 #[derive(Clone)]
@@ -59,6 +64,9 @@ pub struct StudioConfig {
     pub out_dir: PathBuf,
     /// A monocular depth estimator, used for photos given without a depth map.
     pub estimator: Option<Arc<dyn DepthEstimator>>,
+    /// The intrinsics estimator behind "light like this photo" (Marigold-IID-Lighting); without
+    /// one that request is refused with a message saying how to get it.
+    pub lighting: Option<Arc<dyn LightingEstimator>>,
 }
 
 impl Default for StudioConfig {
@@ -77,6 +85,7 @@ impl Default for StudioConfig {
             int8: false,
             out_dir: PathBuf::from("studio-out"),
             estimator: None,
+            lighting: None,
         }
     }
 }
@@ -127,6 +136,32 @@ struct Rendered {
     relit: Shown,
 }
 
+/// The photo relit like a reference photo.
+struct Liked {
+    /// Counts results (the page's cache key).
+    id: u64,
+    reference: String,
+    like: pixl_pipeline::like::LikeCt,
+    relit: Shown,
+}
+
+impl Liked {
+    fn json(&self) -> Value {
+        json!({
+            "id": self.id,
+            "reference": self.reference,
+            "width": self.relit.width,
+            "height": self.relit.height,
+            "mean": self.relit.mean,
+            "reference_size": [self.like.target_size.0, self.like.target_size.1],
+            "aspect_mismatch": self.like.aspect_mismatch,
+            "aspect_differs": self.like.aspect_differs(),
+            "tau": self.like.tau,
+            "estimator": self.like.estimator,
+        })
+    }
+}
+
 /// What the last change did, for coalescing undo steps.
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum Action {
@@ -152,6 +187,8 @@ struct State {
     busy: Option<String>,
     error: Option<String>,
     notes: Vec<String>,
+    like: Option<Liked>,
+    like_count: u64,
 }
 
 pub(crate) struct Shared {
@@ -198,7 +235,9 @@ impl WaitFor {
 }
 
 /// Names of the images [`Studio::image_png`] serves.
-pub const IMAGES: &[&str] = &["photo", "preview", "render", "albedo", "shading", "residual", "relit"];
+pub const IMAGES: &[&str] = &[
+    "photo", "preview", "render", "albedo", "shading", "residual", "relit", "like",
+];
 
 impl Studio {
     /// Loads the network and starts the background worker.
@@ -212,22 +251,16 @@ impl Studio {
             s.side = s.side.clamp(8, config.work_side);
         }
         let dev = candle_core::Device::Cpu;
-        let (model_name, (_, mut model)) = match &config.weights {
-            Some(w) => (
-                w.display().to_string(),
-                pixl_model::load(w, &dev, candle_core::DType::F32)?,
-            ),
-            None => (
-                BUNDLED_NAME.to_string(),
-                pixl_model::load_bytes(Path::new(BUNDLED_NAME), BUNDLED_WEIGHTS, &dev, candle_core::DType::F32)?,
-            ),
-        };
-        if config.int8 {
-            match model.quantize_int8()? {
-                0 => tracing::warn!("int8: this CPU has no AVX-512 VNNI; the network runs in f32"),
-                n => tracing::info!("int8: {n} linear layers quantized to 8 bits"),
-            }
-        }
+        // Ours or the paper's released checkpoint (its licence goes into the model's name, which
+        // the page shows), the same loader as `pixl relight`.
+        let net = pixl_pipeline::relight::Network::load(
+            config.weights.as_deref(),
+            candle_core::DType::F32,
+            &dev,
+            config.int8,
+        )?;
+        let model_name = net.describe().trim_start_matches("weights: ").to_string();
+        let model = net.model;
         let workdir = tempfile::Builder::new()
             .prefix("pixl-studio-")
             .tempdir()
@@ -262,6 +295,8 @@ impl Studio {
                 busy: None,
                 error: None,
                 notes: Vec::new(),
+                like: None,
+                like_count: 0,
             }),
             wake: Condvar::new(),
             generation: AtomicU64::new(0),
@@ -525,6 +560,7 @@ impl Studio {
             st.gbuf = Some(Arc::new(gbuf));
             if let Some(p) = photo {
                 st.photo = Some(Arc::new(p));
+                st.like = None;
             }
             if let Some(mut ls) = lights {
                 st.undo.clear();
@@ -808,6 +844,7 @@ impl Studio {
             "shading" => pick(r.map(|r| &r.shading)),
             "residual" => pick(r.map(|r| &r.residual)),
             "relit" => pick(r.map(|r| &r.relit)),
+            "like" => pick(st.like.as_ref().map(|l| &l.relit)),
             _ => Err(StudioError::NotFound(format!(
                 "no image named {name:?} (there are {})",
                 IMAGES.join(", ")
@@ -871,6 +908,8 @@ impl Studio {
             "notes": st.notes,
             "presets": pixl_render::presets::PRESETS,
             "weights": self.shared.model_name,
+            "like": st.like.as_ref().map(Liked::json),
+            "can_like": self.shared.config.lighting.is_some(),
             "out_dir": self.shared.config.out_dir.display().to_string(),
             "stages": stages,
         })
@@ -922,6 +961,49 @@ impl Studio {
     pub fn relit_full(&self, timeout: Duration) -> Result<Image> {
         let (out, photo) = self.final_output(timeout)?;
         pipeline::relight(&photo.full, &out)
+    }
+
+    // ----- light like a photo ---------------------------------------------------------------
+
+    /// Relights the photo (at the working size) with the lighting of a reference photo (PNG or
+    /// JPEG bytes, the upload limits apply): its `C_T` by the plugged [`LightingEstimator`]
+    /// (`pixl_pipeline::like::target_ct`), then the network. Returns the result's JSON (as in
+    /// the state's `like`); the image is served as `like`.
+    pub fn relight_like_bytes(&self, bytes: &[u8], name: &str) -> Result<Value> {
+        let estimator = self.shared.config.lighting.clone().ok_or_else(|| {
+            StudioError::NotFound(
+                "no Marigold-IID-Lighting estimator is loaded, so lighting cannot be read off a photo: put its \
+                 weights on disk (`pixl models fetch marigold-lighting`, or --models DIR) and restart the studio"
+                    .into(),
+            )
+        })?;
+        let photo =
+            self.lock().photo.clone().ok_or_else(|| {
+                StudioError::BadRequest("load a photo before a reference photo to light it like".into())
+            })?;
+        let reference = self.decode_photo(bytes, name)?;
+        let size = (photo.work.width, photo.work.height);
+        let like = pixl_pipeline::like::target_ct(estimator.as_ref(), &reference, size, &pixl_pipeline::Silent)?;
+        let (gain, bias) = pipeline::gain_bias(&self.shared.model, &photo.work, &like.ct)?;
+        let mut relit = photo.work.clone();
+        pixl_model::fullres::apply_gain_bias(&mut relit, &gain, &bias, size.0, size.1)?;
+        let mut st = self.lock();
+        if !st.photo.as_ref().is_some_and(|p| Arc::ptr_eq(p, &photo)) {
+            return Err(StudioError::Superseded(
+                "another photo was loaded meanwhile; light it like the reference again".into(),
+            ));
+        }
+        st.like_count += 1;
+        let liked = Liked {
+            id: st.like_count,
+            reference: name.to_string(),
+            relit: Shown::new(st.generation, &relit)?,
+            like,
+        };
+        let out = liked.json();
+        st.like = Some(liked);
+        self.shared.wake.notify_all();
+        Ok(out)
     }
 
     // ----- files ------------------------------------------------------------------------------

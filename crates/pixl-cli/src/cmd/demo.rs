@@ -9,27 +9,36 @@
 //! 3. For each of the paper's five presets (§4.2) the preset's lights (placed from the true
 //!    scene's bounds) light the coarse scene, the native path tracer renders the Cycles passes,
 //!    and `C_T` is composed from them exactly as `pixl compose` does (App. B).
-//! 4. The network relights `I_S` under `C_T`. Weights: `--weights`, else the bundled demo
-//!    weights (`assets/demo-weights/pixl-tiny-synth.safetensors`) when present, else a freshly
-//!    initialised `tiny` network — which returns the source unchanged, and the report says so.
+//! 4. The network relights `I_S` under `C_T`, at the source's own size. Weights: `--weights`,
+//!    else the bundled demo weights compiled into the binary
+//!    (`pixl_pipeline::relight::BUNDLED_WEIGHTS`, `assets/demo-weights/pixl-tiny-synth.safetensors`).
 //! 5. Because the scene is synthetic, the true scene rendered under the preset is the ground
 //!    truth: each relit image gets PSNR / SSIM against it (and the source gets the same, as the
 //!    identity baseline).
 //!
+//! The stages are `pixl_pipeline`'s: `render::render_film` (the source and the ground truths, all
+//! at the scene camera's size), `render::render_intrinsics` (the coarse scene's passes and their
+//! C_T; `render::compose` for the true scene's with `--exact-intrinsics`) and
+//! `relight::{Network, relight}` (the network), watched through the CLI's observer
+//! ([`crate::ctx::Bars`]). There is no photo, depth or reconstruct stage: the source is a render
+//! with an exact depth pass, and `pixl_render::reconstruct::coarse_scene` builds the coarse
+//! scene from its passes. This module parses the flags, writes the images and the report, scores
+//! them and prints.
+//!
 //! Output: PNGs per preset and one self-contained `report.html` (images inlined).
+use crate::ctx::Bars;
 use crate::report::{Panel, Report, Row, Table};
 use crate::Ctx;
 use anyhow::{Context, Result};
-use candle_core::{DType, Device, Tensor};
+use candle_core::{DType, Device};
 use pixl_core::Image;
-use pixl_intrinsics::compose::{compose_film, ComposeOptions};
-use pixl_render::integrator::{render, RenderOptions};
+use pixl_pipeline::relight::{ct_at_working_size, relight, Network};
+use pixl_pipeline::render::{compose, render_film, render_intrinsics, RenderSettings};
 use pixl_render::presets::{apply_preset, PRESETS};
 use pixl_render::scene::Scene;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 const DEMO_SCENE: &str = include_str!("../../../../assets/demo/scene.toml");
-const DEMO_WEIGHTS: &str = "assets/demo-weights/pixl-tiny-synth.safetensors";
 
 #[derive(clap::Args, Debug)]
 #[command(
@@ -39,7 +48,7 @@ pub struct Args {
     /// Output directory (created if missing).
     #[arg(long, default_value = "demo-out")]
     pub out: PathBuf,
-    /// Network weights (default: the bundled demo weights, else a fresh `tiny` network).
+    /// Network weights (default: the bundled demo weights, compiled into the binary).
     #[arg(long)]
     pub weights: Option<PathBuf>,
     /// Path-tracing samples per pixel.
@@ -56,28 +65,6 @@ pub struct Args {
     pub json: bool,
 }
 
-/// The bundled demo weights, looked up relative to the working directory and to the source tree
-/// this binary was built from.
-fn bundled_weights() -> Option<PathBuf> {
-    let here = PathBuf::from(DEMO_WEIGHTS);
-    let built = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..").join(DEMO_WEIGHTS);
-    [here, built].into_iter().find(|p| p.is_file())
-}
-
-fn to_tensor(img: &Image, dev: &Device) -> Result<Tensor> {
-    Ok(Tensor::from_vec(
-        img.to_chw(),
-        (1, img.channels, img.height, img.width),
-        dev,
-    )?)
-}
-
-fn from_tensor(t: &Tensor) -> Result<Image> {
-    let (_b, c, h, w) = t.dims4()?;
-    let data = t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>()?;
-    Ok(Image::from_chw(w, h, c, &data)?)
-}
-
 pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     let scene = match &args.scene {
         Some(p) => Scene::load(p)?,
@@ -86,42 +73,22 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("cannot create output directory {}", args.out.display()))?;
     let dev = Device::Cpu;
-    let (weights_note, model) = match args.weights.clone().or_else(bundled_weights) {
-        Some(w) => {
-            let (cfg, model) = pixl_model::checkpoint::load(&w, &dev, DType::F32)?;
-            (
-                format!(
-                    "weights: {} (model width d = {}, trunk depth {})",
-                    w.display(),
-                    cfg.dim,
-                    cfg.trunk.depth
-                ),
-                model,
-            )
-        }
-        None => {
-            let cfg = pixl_model::Config::tiny();
-            let model = pixl_model::checkpoint::build_inference(&cfg, 0, DType::F32, &dev)?;
-            (
-                "no trained weights found: a freshly initialised `tiny` network is used, which returns the source \
-                 unchanged (its output convolution is zero-initialised)"
-                    .to_string(),
-                model,
-            )
-        }
-    };
-    tracing::info!("{weights_note}");
+    let net = Network::load(args.weights.as_deref(), DType::F32, &dev, false)?;
+    let weights_note = format!(
+        "weights: {} (model width d = {}, trunk depth {})",
+        net.name, net.cfg.dim, net.cfg.trunk.depth
+    );
 
-    let pb = ctx.progress((1 + PRESETS.len()) as u64, "demo");
-    let opts = RenderOptions {
+    let bars = Bars::new(ctx);
+    // Every render at the scene camera's size; the network runs at that size too.
+    let size = (scene.camera.width as usize, scene.camera.height as usize);
+    let settings = RenderSettings {
         spp: args.spp,
-        ..RenderOptions::default()
+        ..RenderSettings::default()
     };
-    let no_progress = |_: usize, _: usize| {};
-    let source_film = render(&scene, &opts, &no_progress)?;
+    let source_film = render_film(&scene, size, &settings, &bars).context("rendering the source")?;
     let source = source_film.combined_srgb();
     pixl_core::io::write_png(&args.out.join("source.png"), &source, pixl_core::io::PngDepth::Eight)?;
-    pb.inc(1);
 
     let coarse = if args.exact_intrinsics {
         None
@@ -133,7 +100,6 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
             &args.out.join("reconstruction"),
         )?)
     };
-    let src_t = to_tensor(&source, &dev)?;
     let mut rows = Vec::new();
     let mut json_rows = Vec::new();
     // Summary tables, a row per preset: (source, path-traced render, relit).
@@ -143,22 +109,24 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     for &preset in PRESETS {
         let mut lit = scene.clone();
         apply_preset(&mut lit, preset, true)?;
-        let film = render(&lit, &opts, &no_progress)?;
+        let film = render_film(&lit, size, &settings, &bars).with_context(|| format!("rendering {preset}"))?;
         let truth = film.combined_srgb();
         // The passes C_T is composed from: the coarse reconstruction under the same lights.
-        let authored = match &coarse {
+        let (authored, composed) = match &coarse {
             Some(c) => {
                 let mut c = c.clone();
                 c.lights = lit.lights.clone();
-                render(&c, &opts, &no_progress)?
+                render_intrinsics(&c, size, &settings, &bars).with_context(|| format!("preset {preset}"))?
             }
-            None => film,
+            None => {
+                let composed = compose(&film)?;
+                (film, composed)
+            }
         };
         let path_traced = authored.combined_srgb();
-        let composed = compose_film(&authored, &ComposeOptions::default())?;
         let ct = composed.ct;
-        let ct_t = Tensor::from_vec(ct.to_chw(), (1, 9, ct.height(), ct.width()), &dev)?;
-        let relit = from_tensor(&model.forward(&src_t, &ct_t)?)?;
+        let ct_work = ct_at_working_size(&ct, size)?;
+        let relit = relight(&net, source.clone(), &ct_work, size, &dev, &bars)?;
         let dir = args.out.join(preset);
         std::fs::create_dir_all(&dir)?;
         let shown_s = ct.shading.map(pixl_core::image::linear_to_srgb);
@@ -200,9 +168,7 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
             ],
         });
         responses.push((relit, path_traced, truth));
-        pb.inc(1);
     }
-    pb.finish_and_clear();
     // How much of the change between the presets' path-traced renders each method shows.
     let relits: Vec<&Image> = responses.iter().map(|r| &r.0).collect();
     let traced: Vec<&Image> = responses.iter().map(|r| &r.1).collect();

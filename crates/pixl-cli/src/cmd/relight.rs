@@ -7,6 +7,10 @@
 //!   → the native path tracer at the working size → `compose` → the network. The photo is decoded
 //!   once; the scene is written only with `--keep DIR`, which keeps every intermediate.
 //! - **With a given C_T**: `pixl relight --source photo.png --intrinsics ct.exr -o relit.png`.
+//! - **Like a reference photo**: `pixl relight photo.jpg --like target.jpg -o relit.png`: C_T is
+//!   the target photo's own (Marigold-IID-Lighting, App. B's rescale, resized to the photo's
+//!   size: `pixl_pipeline::like`), as the paper conditions on target photos in training. No
+//!   depth, reconstruction or render; `--keep DIR` keeps CT.exr, CT_sheet.png, before_after.png.
 //!
 //! Any size: the network runs at a working size (long side `--max-side`, default 1024; the
 //! paper trains at 512) and its gain and bias are resized bilinearly to the photo and applied
@@ -21,8 +25,9 @@
 //! memory before the network starts.
 //!
 //! The stages are `pixl_pipeline`'s (photo, depth, reconstruct, render, relight); this module
-//! parses the flags, places the lights and prints. Weights: `--weights`, else the bundled demo
-//! weights compiled into the binary (`pixl_pipeline::relight::BUNDLED_WEIGHTS`, 2.8 MB, so they
+//! parses the flags, places the lights and prints. Weights: `--weights` (`bundled`, `pixlrelight`
+//! or a file; `crate::weights::network_weights`), else the released checkpoint when it is on disk
+//! (its licence printed on every run), else the bundled demo weights compiled into the binary (`pixl_pipeline::relight::BUNDLED_WEIGHTS`, 2.8 MB, so they
 //! are there after `cargo install` too). Sources: PNG/JPEG as stored values in [0, 1], EXR as
 //! stored (values outside [0, 1] clamped with a warning; non-finite refused). Output `.png` 16-bit, `.jpg`,
 //! `.exr` f32, written atomically. With freshly initialised weights the output equals the source
@@ -40,6 +45,20 @@ use pixl_render::scene::Light;
 use pixl_render::Scene;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
+
+/// The flags `--like` (and its own flags) cannot be given with: the other ways of giving the
+/// lighting, and those of the reconstruction and render it does without.
+const LIKE_CONFLICTS: &[&str] = &[
+    "intrinsics",
+    "preset",
+    "light",
+    "scene",
+    "depth",
+    "fov",
+    "focal",
+    "spp",
+    "bounces",
+];
 /// Output formats, by extension.
 const OUTPUT_EXTS: &[&str] = &["png", "jpg", "jpeg", "exr"];
 
@@ -50,7 +69,8 @@ pixl relight photo.jpg --depth depth.exr --preset cool-side-flash -o relit.png -
 pixl relight photo.jpg --depth depth.exr --light '--type spot --from left' -o relit.png\n  \
 pixl relight photo.jpg --depth depth.exr --light '--at-pixel 640,300' --light '--type sun --azimuth 40 --elevation 50' -o relit.png\n  \
 pixl relight photo.jpg --depth depth.exr --scene lights.toml -o relit.png\n  \
-pixl relight --source photo.png --intrinsics ct.exr --weights model.safetensors --out relit.png\n\n\
+pixl relight --source photo.png --intrinsics ct.exr --weights model.safetensors --out relit.png\n  \
+pixl relight photo.jpg --like same-view-other-light.jpg -o relit.png --keep steps/\n\n\
 From a photo, `pixl relight` runs reconstruct -> lights -> render -> compose -> network. Lights: --preset\n\
 (the paper's five), --light 'FLAGS' (one light, the flags of `pixl light add`; repeatable), --scene FILE\n\
 (the [[lights]] of a .toml/.json scene file, in the reconstructed scene's coordinates). They add up.\n\
@@ -58,7 +78,16 @@ From a photo, `pixl relight` runs reconstruct -> lights -> render -> compose -> 
 render.png and before_after.png.\n\n\
 Any size: the network runs with the long side at --max-side (default 1024) and its per-pixel gain and\n\
 bias are resized to the photo and applied there: the output has the photo's size and detail. The memory\n\
-this needs is checked first; a request that does not fit is refused with the figure.\n\n",
+this needs is checked first; a request that does not fit is refused with the figure.\n\n\
+--like TARGET takes the lighting of another photo of the same view instead of lights: the target's C_T\n\
+(albedo, diffuse shading, non-diffuse residual) is estimated with Marigold-IID-Lighting\n\
+(prs-eth/marigold-iid-lighting-v1-1, licence OpenRAIL++-M; weights from --models DIR, the Hugging Face\n\
+cache, or a one-time download of about 2.6 GB, never with --offline), rescaled as the paper's training\n\
+targets are (App. B: joint 98th percentile of shading and residual) and resized to the photo's size. No\n\
+depth, mesh or render, so no Depth Anything 3 weights. The two photos should show the same view: a target\n\
+of another aspect ratio is stretched to the photo's frame (a warning above 3 %). With --like, --keep DIR\n\
+keeps CT.exr (at the photo's size: --intrinsics CT.exr gives the same result again), CT_sheet.png and\n\
+before_after.png.\n\n",
 crate::scene_axes_help!()))]
 pub struct Args {
     /// The photo to relight (.png, .jpg or .exr); the same as --source.
@@ -74,9 +103,7 @@ pub struct Args {
     /// Output image (.png: 16-bit; .jpg; .exr: 32-bit float). Its folder must exist.
     #[arg(short = 'o', long)]
     pub out: PathBuf,
-    /// Network weights (.safetensors written by `pixl model init` or `pixl train`). Default: the
-    /// bundled demo weights (a `tiny` model trained on synthetic scenes).
-    #[arg(long)]
+    #[arg(long, value_name = "bundled|pixlrelight|FILE", help = crate::weights::NETWORK_WEIGHTS_HELP)]
     pub weights: Option<PathBuf>,
     /// Longest side the network works at (the paper trains at 512); the result is applied at the
     /// photo's full size.
@@ -129,9 +156,28 @@ pub struct Args {
     /// Maximum bounces of the render.
     #[arg(long, default_value_t = 8)]
     pub bounces: u32,
-    /// Random seed of the render.
+    /// Random seed of the render (with --like: of Marigold's initial noise).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Relight like this photo: the target lighting is TARGET's (another photo of the same view),
+    /// its C_T estimated with Marigold-IID-Lighting (OpenRAIL++-M weights, found or fetched like
+    /// `pixl estimate lighting`'s). Instead of --preset/--light/--scene/--intrinsics; needs no depth.
+    #[arg(long, value_name = "TARGET", conflicts_with_all = LIKE_CONFLICTS)]
+    pub like: Option<PathBuf>,
+    /// With --like: longest side Marigold-IID-Lighting sees, a multiple of 8 (default: the
+    /// checkpoint's, 768; 512 is about twice as fast on a CPU).
+    #[arg(long, value_name = "PX", requires = "like", conflicts_with_all = LIKE_CONFLICTS)]
+    pub like_res: Option<usize>,
+    /// With --like: Marigold's denoising steps (default 1, as the paper computes C_T from its
+    /// training photos; --seed seeds the initial noise).
+    #[arg(
+        long,
+        value_name = "N",
+        requires = "like",
+        conflicts_with_all = LIKE_CONFLICTS,
+        value_parser = crate::ctx::at_least_one_usize
+    )]
+    pub like_steps: Option<usize>,
     /// Keep every intermediate in this folder (created; must be empty unless --force).
     #[arg(long, value_name = "DIR")]
     pub keep: Option<PathBuf>,
@@ -205,10 +251,17 @@ fn load_network(ctx: &Ctx, args: &Args, device: &candle_core::Device) -> anyhow:
     if args.int8 {
         crate::device::check_int8(device, args.dtype.into())?;
     }
+    let choice = args.weights.as_deref().map(|p| p.to_string_lossy().into_owned());
+    let weights = crate::weights::network_weights(choice.as_deref(), &args.models, ctx)?;
     let sp = spinner(ctx, "loading the weights");
-    let net = Network::load(args.weights.as_deref(), args.dtype.into(), device, args.int8);
+    let net = Network::load(weights.as_deref(), args.dtype.into(), device, args.int8);
     sp.finish_and_clear();
-    Ok(net?)
+    let net = net?;
+    if net.licence.is_some() {
+        // Always shown (even under --quiet): the weights restrict how the output may be used.
+        eprintln!("{}", net.describe());
+    }
+    Ok(net)
 }
 
 /// `--max-memory` in bytes, checked.
@@ -272,7 +325,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         (None, None) => bail!("give the photo: `pixl relight photo.jpg --preset NAME -o relit.png` (see --help)"),
     };
     let mut inputs: Vec<&Path> = vec![&photo];
-    for p in [&args.intrinsics, &args.weights, &args.depth, &args.scene]
+    for p in [&args.intrinsics, &args.weights, &args.depth, &args.scene, &args.like]
         .into_iter()
         .flatten()
     {
@@ -281,6 +334,9 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     pixl_core::output::check_output(&args.out, OUTPUT_EXTS, &inputs)?;
     if args.intrinsics.is_some() {
         return run_with_intrinsics(&args, &photo, ctx);
+    }
+    if let Some(target) = &args.like {
+        return run_like(&args, &photo, target, ctx);
     }
     run_pipeline(&args, &photo, ctx)
 }
@@ -316,7 +372,7 @@ fn run_with_intrinsics(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Res
     drop(ct);
     let relit = run_network(ctx, &net, photo, &ct_work, budget.work, &device)?;
     write_output(ctx, &args.out, &relit)?;
-    report(ctx, args, &net, size, &budget, &[])
+    report(ctx, args, &net, size, &budget, &[], None)
 }
 
 fn report(
@@ -326,9 +382,10 @@ fn report(
     size: (usize, usize),
     budget: &Budget,
     kept: &[PathBuf],
+    like: Option<serde_json::Value>,
 ) -> anyhow::Result<()> {
     if args.json {
-        return ctx.print_json(&serde_json::json!({
+        let mut v = serde_json::json!({
             "output": args.out.display().to_string(),
             "width": size.0,
             "height": size.1,
@@ -340,7 +397,11 @@ fn report(
             "planned_full_size_bytes": budget.full,
             "weights": net.name,
             "kept": kept.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
-        }));
+        });
+        if let (Some(like), serde_json::Value::Object(m)) = (like, &mut v) {
+            m.insert("like".into(), like);
+        }
+        return ctx.print_json(&v);
     }
     ctx.say(format!(
         "wrote {} ({}x{}; network at {}x{}, planned peak {})",
@@ -413,7 +474,10 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
         .collect::<anyhow::Result<Vec<_>>>()?;
     let file_lights = args.scene.as_deref().map(read_lights).transpose()?;
     if args.preset.is_none() && specs.is_empty() && file_lights.is_none() {
-        bail!("give the new lighting: --preset NAME, --light 'FLAGS' or --scene lights.toml (or --intrinsics CT.exr; see --help)");
+        bail!(
+            "give the new lighting: --preset NAME, --light 'FLAGS' or --scene lights.toml (or --intrinsics CT.exr, \
+             or --like TARGET.jpg; see --help)"
+        );
     }
     if let Some(k) = &args.depth_kind {
         if pixl_pipeline::depth::DepthKind::parse(k).is_none() {
@@ -541,5 +605,103 @@ fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()>
         kept.push(path);
         ctx.say(format!("intermediates in {}", dir.display()));
     }
-    report(ctx, args, &net, size, &budget, &kept)
+    report(ctx, args, &net, size, &budget, &kept, None)
+}
+
+/// The files `--keep` writes with `--like`.
+const KEPT_LIKE: &[&str] = &["CT.exr", "CT_sheet.png", "before_after.png"];
+
+/// `PHOTO --like TARGET`: the target's C_T from Marigold-IID-Lighting → the network. Both photos
+/// are read and the network's memory planned before the estimator's weights are looked up;
+/// nothing is written until the relit image exists.
+fn run_like(args: &Args, photo_path: &Path, target_path: &Path, ctx: &Ctx) -> anyhow::Result<()> {
+    if let Some(dir) = &args.keep {
+        let mut inputs: Vec<&Path> = vec![photo_path, target_path];
+        inputs.extend(args.weights.as_deref());
+        pixl_core::output::check_output_dir(dir, args.force, KEPT_LIKE, &inputs)?;
+    }
+    let device = crate::device::parse_device(&args.device)?;
+    let photo = read_photo(ctx, args, photo_path)?;
+    let target =
+        pixl_pipeline::like::read_target(target_path).with_context(|| format!("--like {}", target_path.display()))?;
+    let net = load_network(ctx, args, &device)?;
+    let size = photo.size();
+    // Full size: the photo (f32), the encoded output, the target's C_T at the photo's size (9 f32)
+    // and one of its maps being resized.
+    let budget = check_budget(&net, size, args.max_side, 12 + 8 + 36 + 12, max_memory(args)?)?;
+    let work = budget.work;
+
+    let opts = pixl_estimate::marigold::MarigoldOptions {
+        steps: Some(args.like_steps.unwrap_or(pixl_pipeline::like::LIKE_STEPS)),
+        resolution: args.like_res,
+        seed: args.seed,
+        ..Default::default()
+    };
+    let (m, resolved) = crate::iid::load(
+        pixl_estimate::marigold::IidVariant::Lighting,
+        &args.device,
+        &args.models,
+        ctx,
+    )
+    .context(
+        "--like needs Marigold-IID-Lighting's weights (`pixl models fetch marigold-lighting`, or --models DIR \
+         holding them)",
+    )?;
+    crate::iid::announce(&m, target.width, target.height, &opts, "target intrinsics")?;
+    let estimator = pixl_pipeline::estimators::MarigoldLighting::new(m, opts, resolved.spec.name)?;
+
+    let before = args
+        .keep
+        .as_ref()
+        .map(|_| pixl_core::resample::area_resize(&photo.image, work.0, work.1))
+        .transpose()?;
+    let bars = crate::ctx::Bars::new(ctx);
+    let liked = pixl_pipeline::like::relight_like(&net, photo, &target, &estimator, work, &device, &bars)?;
+    drop(target);
+    write_output(ctx, &args.out, &liked.relit)?;
+
+    let ct = &liked.ct;
+    let mut kept = Vec::new();
+    if let (Some(dir), Some(before)) = (&args.keep, before) {
+        let sp = spinner(ctx, "writing the intermediates");
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        pixl_intrinsics::ct::write_ct(&dir.join("CT.exr"), &ct.ct)?;
+        let sheet = pixl_intrinsics::preview::preview_sheet(&ct.ct)?;
+        pixl_core::io::write_png(&dir.join("CT_sheet.png"), &sheet, pixl_core::io::PngDepth::Eight)?;
+        let after = pixl_core::resample::area_resize(&liked.relit, work.0, work.1)?;
+        let pair = Image::hstack(&[&before, &after])?;
+        pixl_core::io::write_png(&dir.join("before_after.png"), &pair, pixl_core::io::PngDepth::Eight)?;
+        sp.finish_and_clear();
+        kept.extend(KEPT_LIKE.iter().map(|n| dir.join(n)));
+        ctx.say(format!("intermediates in {}", dir.display()));
+    }
+    let like = serde_json::json!({
+        "target": target_path.display().to_string(),
+        "target_width": ct.target_size.0,
+        "target_height": ct.target_size.1,
+        "aspect_mismatch": ct.aspect_mismatch,
+        "tau": ct.tau,
+        "estimator": ct.estimator,
+        "steps": estimator.options.steps,
+        "resolution": estimator.options.resolution,
+        "seed": args.seed,
+        "weights": {
+            "dir": resolved.dir.display().to_string(),
+            "source": resolved.source.to_string(),
+            "licence": resolved.spec.licence,
+        },
+    });
+    if !args.json {
+        ctx.say(format!(
+            "lighting of {} ({}x{}) by {}; weights {} ({}), from {}",
+            target_path.display(),
+            ct.target_size.0,
+            ct.target_size.1,
+            ct.estimator,
+            resolved.spec.repo,
+            resolved.spec.licence,
+            resolved.source
+        ));
+    }
+    report(ctx, args, &net, size, &budget, &kept, Some(like))
 }

@@ -1,7 +1,8 @@
 //! `pixl studio`: a local web page to place lights on a photo and watch it relight. A thin
 //! wrapper over `pixl_studio`: it reads the flags, opens the photo or scene file, binds the
 //! address (loopback unless `--host` says otherwise, with a warning), prints the URL and serves
-//! until interrupted.
+//! until interrupted. "Light like this photo" uses Marigold-IID-Lighting when its weights are on
+//! disk (never downloaded here), loaded on the first such request.
 use crate::Ctx;
 use anyhow::{bail, Context, Result};
 use pixl_studio::{Studio, StudioConfig};
@@ -13,8 +14,10 @@ use std::path::PathBuf;
 pixl studio assets/demo/scene.toml --port 8080\n  pixl studio --weights W.safetensors --out my-lights/\n\n\
 Opens http://127.0.0.1:PORT/ (printed). Click the photo to place a light, drag it, pick a preset; the\n\
 quick preview follows at once, the path-traced render and the relit photo when you stop. Without a\n\
-depth map the geometry is a labelled stand-in (a ground plane and a backdrop). The JSON API behind\n\
-the page is documented in crates/pixl-studio/README.md."
+depth map the geometry is a labelled stand-in (a ground plane and a backdrop). \"Light like photo…\"\n\
+relights the photo with the lighting of another photo of the same view; it needs Marigold-IID-Lighting's\n\
+weights on disk (`pixl models fetch marigold-lighting`, licence OpenRAIL++-M; about 2.6 GB, loaded on\n\
+first use). The JSON API behind the page is documented in crates/pixl-studio/README.md."
 )]
 pub struct Args {
     /// A photo (.png, .jpg) or a scene file (.toml, .json) to open; or drop one on the page.
@@ -32,8 +35,7 @@ pub struct Args {
     /// session, and the files it can write, to the network.
     #[arg(long, default_value = "127.0.0.1")]
     pub host: String,
-    /// Network weights (default: the bundled demo weights).
-    #[arg(long)]
+    #[arg(long, value_name = "bundled|pixlrelight|FILE", help = crate::weights::NETWORK_WEIGHTS_HELP)]
     pub weights: Option<PathBuf>,
     /// 8-bit matrix products in the network's linear layers (CPU with AVX-512 VNNI; elsewhere
     /// a warning and f32): a faster relit preview, see `pixl relight --int8`.
@@ -54,7 +56,7 @@ pub struct Args {
     /// Open the page in the default browser.
     #[arg(long)]
     pub open: bool,
-    /// Device of the depth estimator: cpu, or cuda[:N].
+    /// Device of the depth and lighting estimators: cpu, or cuda[:N].
     #[arg(long, default_value = "cpu")]
     pub device: String,
     #[command(flatten)]
@@ -86,6 +88,63 @@ fn depth_estimator(args: &Args, ctx: &Ctx) -> Result<Option<std::sync::Arc<dyn p
     Ok(None)
 }
 
+/// Marigold-IID-Lighting behind "light like this photo", loaded on its first use (its weights
+/// take gigabytes of memory, and most sessions never ask).
+struct LazyLighting {
+    dir: PathBuf,
+    label: &'static str,
+    device: candle_core::Device,
+    model: std::sync::OnceLock<std::result::Result<pixl_pipeline::estimators::MarigoldLighting, String>>,
+}
+
+impl pixl_studio::LightingEstimator for LazyLighting {
+    fn name(&self) -> String {
+        format!("Marigold-IID Lighting ({})", self.label)
+    }
+
+    fn decompose(
+        &self,
+        photo: &pixl_core::Image,
+        observer: &dyn pixl_pipeline::Observer,
+    ) -> pixl_pipeline::Result<pixl_pipeline::like::Decomposition> {
+        let model = self.model.get_or_init(|| {
+            let opts = pixl_pipeline::estimators::MarigoldOptions {
+                steps: Some(pixl_pipeline::like::LIKE_STEPS),
+                ..Default::default()
+            };
+            pixl_pipeline::estimators::MarigoldLighting::load(&self.dir, opts, self.label, &self.device)
+                .map_err(|e| e.to_string())
+        });
+        match model {
+            Ok(m) => m.decompose(photo, observer),
+            Err(e) => Err(pixl_pipeline::PipelineError::input(e.clone())),
+        }
+    }
+}
+
+/// Marigold-IID-Lighting for "light like this photo" when its weights are on disk (the studio
+/// never downloads them); `None` otherwise, with a note saying how to get them.
+fn lighting_estimator(args: &Args, ctx: &Ctx) -> Result<Option<std::sync::Arc<dyn pixl_studio::LightingEstimator>>> {
+    let spec = pixl_estimate::hub::lookup("marigold-lighting")?;
+    let Some(resolved) = args.models.hub().locate(spec)? else {
+        ctx.say(
+            "no Marigold-IID-Lighting weights on disk (`pixl models fetch marigold-lighting`, or --models DIR): \
+             \"light like this photo\" is off",
+        );
+        return Ok(None);
+    };
+    ctx.say(format!(
+        "light like a photo: {} ({}, from {}; loaded on first use)",
+        spec.name, spec.licence, resolved.source
+    ));
+    Ok(Some(std::sync::Arc::new(LazyLighting {
+        dir: resolved.dir,
+        label: spec.name,
+        device: crate::device::parse_device(&args.device)?,
+        model: std::sync::OnceLock::new(),
+    })))
+}
+
 pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
     let depth_kind = pixl_studio::DepthKind::parse(&args.depth_kind)
         .with_context(|| format!("--depth-kind {:?}: give metric, relative or disparity", args.depth_kind))?;
@@ -105,8 +164,22 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         (None, _) => depth_estimator(&args, ctx)?,
         _ => None,
     };
+    let lighting = lighting_estimator(&args, ctx)?;
+    let choice = args.weights.as_deref().map(|p| p.to_string_lossy().into_owned());
+    let weights = crate::weights::network_weights(choice.as_deref(), &args.models, ctx)?;
+    if weights
+        .as_deref()
+        .is_some_and(|w| !pixl_pipeline::relight::is_native(w).unwrap_or(true))
+    {
+        eprintln!(
+            "weights: PIXLRelight release {} — licence {}",
+            weights.as_deref().map(|w| w.display().to_string()).unwrap_or_default(),
+            pixl_model::official::LICENCE
+        );
+    }
     let config = StudioConfig {
         estimator,
+        lighting,
         work_side: args.size,
         stages: vec![
             pixl_studio::Stage {
@@ -119,7 +192,7 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
             },
         ],
         fov_y_deg: args.fov,
-        weights: args.weights.clone(),
+        weights,
         int8: args.int8,
         out_dir: args.out.clone(),
         ..StudioConfig::default()

@@ -602,12 +602,19 @@ pub fn inspect(weights: &Path, config: Option<&Path>, table: &NameTable) -> Resu
         if yaml.is_none() {
             notes.push("no config.yaml given: heads, readouts and RoPE frequency assumed".into());
         }
-        infer(
+        let cfg = infer(
             &View { stored: &stored, table },
             yaml.as_ref(),
             &mut problems,
             &mut notes,
-        )
+        );
+        if let Some(c) = cfg.as_ref().filter(|c| c.patch != table.conventions.pad_multiple) {
+            problems.push(format!(
+                "the name table pads inputs to a multiple of {}, the network to its patch size {}: not implemented",
+                table.conventions.pad_multiple, c.patch
+            ));
+        }
+        cfg
     };
     let expected = match &cfg {
         Some(c) => param_shapes(c).map_err(|e| OfficialError::Candle(candle_core::Error::Msg(e.to_string())))?,
