@@ -18,6 +18,8 @@
 //!   plan, and the relit photo at full size.
 //! - [`like`]: the target lighting read off another photo instead: its `C_T` from a
 //!   [`like::LightingEstimator`] (Marigold-IID-Lighting in [`estimators`]), then the network.
+//! - [`job`]: one photo end to end — a [`job::Job`] (photo + [`job::Lighting`]) through the
+//!   stages above to the relit photo, intermediates written only when asked.
 //! - [`observe`]: how a caller watches long stages ([`observe::Observer`]).
 //!
 //! Typed errors ([`PipelineError`]); no stage prints: notes and progress go to the observer.
@@ -25,6 +27,7 @@ pub mod depth;
 pub mod error;
 pub mod estimators;
 pub mod exif;
+pub mod job;
 pub mod lights;
 pub mod like;
 pub mod observe;

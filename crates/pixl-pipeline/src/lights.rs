@@ -523,3 +523,60 @@ pub fn parse_pixel(s: &str) -> Result<[f32; 2], String> {
     }
     Ok(p)
 }
+
+/// Parses one light given as the flags of `pixl light add` in one string (`--type spot --from
+/// left --power 300`; what `pixl relight --light '…'` and a batch manifest hold), checked.
+#[cfg(feature = "clap")]
+pub fn parse_light_words(words: &str) -> Result<LightSpec> {
+    #[derive(clap::Parser, Debug)]
+    #[command(name = "--light", no_binary_name = true, disable_help_flag = true)]
+    struct Words {
+        #[command(flatten)]
+        spec: LightSpec,
+    }
+    let parsed = <Words as clap::Parser>::try_parse_from(words.split_whitespace()).map_err(|e| {
+        let text = e.render().to_string();
+        let first = text.lines().next().unwrap_or("").trim_start_matches("error: ");
+        PipelineError::input(format!("--light '{words}': {first}"))
+    })?;
+    if !parsed.spec.is_given() {
+        return Err(PipelineError::input(format!(
+            "--light '{words}': give the light's flags, e.g. '--type spot --from left'"
+        )));
+    }
+    parsed
+        .spec
+        .check()
+        .map_err(|e| e.context(format!("--light '{words}'")))?;
+    Ok(parsed.spec)
+}
+
+/// The `[[lights]]` of a `.toml` or `.json` scene-like file (everything else in it ignored),
+/// validated; positions in the reconstructed scene's frame.
+pub fn read_lights_file(path: &std::path::Path) -> Result<Vec<Light>> {
+    #[derive(serde::Deserialize)]
+    struct LightsFile {
+        #[serde(default)]
+        lights: Vec<Light>,
+    }
+    let name = path.display();
+    let text = std::fs::read_to_string(path).map_err(|e| PipelineError::io(path, e))?;
+    let file: LightsFile = match pixl_core::io::extension(path).as_str() {
+        "toml" => toml::from_str(&text).map_err(|e| PipelineError::input(format!("{name}: {e}")))?,
+        "json" => serde_json::from_str(&text).map_err(|e| PipelineError::input(format!("{name}: {e}")))?,
+        other => {
+            return Err(PipelineError::input(format!(
+                "{name}: a lights file must be .toml or .json, not {other:?}"
+            )))
+        }
+    };
+    if file.lights.is_empty() {
+        return Err(PipelineError::input(format!("{name}: no [[lights]] in it")));
+    }
+    let mut probe = Scene::new(pixl_render::Camera::new(1, 1, 50.0));
+    probe.lights = file.lights.clone();
+    probe
+        .validate()
+        .map_err(|e| PipelineError::input(format!("{name}: {}", e.to_string().trim_start_matches("<scene>: "))))?;
+    Ok(file.lights)
+}

@@ -24,8 +24,8 @@
 //! working size, the render at the working size) are not in the plan; they finish and free their
 //! memory before the network starts.
 //!
-//! The stages are `pixl_pipeline`'s (photo, depth, reconstruct, render, relight); this module
-//! parses the flags, places the lights and prints. Weights: `--weights` (`bundled`, `pixlrelight`
+//! The work is `pixl_pipeline::job::run` (photo, depth, reconstruct, lights, render, relight);
+//! this module parses the flags, loads the models and prints. Weights: `--weights` (`bundled`, `pixlrelight`
 //! or a file; `crate::weights::network_weights`), else the released checkpoint when it is on disk
 //! (its licence printed on every run), else the bundled demo weights compiled into the binary (`pixl_pipeline::relight::BUNDLED_WEIGHTS`, 2.8 MB, so they
 //! are there after `cargo install` too). Sources: PNG/JPEG as stored values in [0, 1], EXR as
@@ -36,13 +36,14 @@ use crate::Ctx;
 use anyhow::{bail, Context};
 use indicatif::{ProgressBar, ProgressStyle};
 use pixl_core::Image;
-use pixl_model::fullres;
-use pixl_pipeline::lights::LightSpec;
-use pixl_pipeline::relight::{check_budget, ct_at_working_size, gb, Budget, Network, DEFAULT_MAX_SIDE};
+use pixl_estimate::hub::Resolved;
+use pixl_pipeline::depth::{DepthFile, DepthKind};
+use pixl_pipeline::estimators::MarigoldLighting;
+use pixl_pipeline::job::{self, DepthSource, Job, LightSet, Lighting, LightingKind, Relit};
+use pixl_pipeline::lights::{parse_light_words, read_lights_file};
+use pixl_pipeline::relight::{gb, Network, DEFAULT_MAX_SIDE};
 use pixl_pipeline::Photo;
-use pixl_render::presets::{apply_preset, PRESETS};
-use pixl_render::scene::Light;
-use pixl_render::Scene;
+use pixl_render::presets::PRESETS;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
@@ -191,62 +192,6 @@ pub struct Args {
     pub models: crate::weights::WeightsArgs,
 }
 
-/// Parses `--light` words with the flags of `pixl light add`.
-#[derive(clap::Parser, Debug)]
-#[command(name = "--light", no_binary_name = true, disable_help_flag = true)]
-struct LightWords {
-    #[command(flatten)]
-    spec: LightSpec,
-}
-
-/// Parses one `--light` value (whitespace-separated flags).
-pub fn parse_light(words: &str) -> anyhow::Result<LightSpec> {
-    let parsed = <LightWords as clap::Parser>::try_parse_from(words.split_whitespace()).map_err(|e| {
-        let text = e.render().to_string();
-        let first = text
-            .lines()
-            .next()
-            .unwrap_or("")
-            .trim_start_matches("error: ")
-            .to_string();
-        anyhow::anyhow!("--light '{words}': {first}")
-    })?;
-    if !parsed.spec.is_given() {
-        bail!("--light '{words}': give the light's flags, e.g. '--type spot --from left'");
-    }
-    parsed.spec.check().with_context(|| format!("--light '{words}'"))?;
-    Ok(parsed.spec)
-}
-
-/// The `[[lights]]` of a scene-like file; everything else in it is ignored.
-#[derive(serde::Deserialize)]
-struct LightsFile {
-    #[serde(default)]
-    lights: Vec<Light>,
-}
-
-/// Reads the lights of `--scene FILE` and validates them.
-pub fn read_lights(path: &Path) -> anyhow::Result<Vec<Light>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let file: LightsFile = match pixl_core::io::extension(path).as_str() {
-        "toml" => toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?,
-        "json" => serde_json::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?,
-        other => bail!(
-            "{}: a lights file must be .toml or .json, not {other:?}",
-            path.display()
-        ),
-    };
-    if file.lights.is_empty() {
-        bail!("{}: no [[lights]] in it", path.display());
-    }
-    let mut probe = Scene::new(pixl_render::Camera::new(1, 1, 50.0));
-    probe.lights = file.lights.clone();
-    probe
-        .validate()
-        .map_err(|e| anyhow::anyhow!("{}: {}", path.display(), e.to_string().trim_start_matches("<scene>: ")))?;
-    Ok(file.lights)
-}
-
 fn load_network(ctx: &Ctx, args: &Args, device: &candle_core::Device) -> anyhow::Result<Network> {
     if args.int8 {
         crate::device::check_int8(device, args.dtype.into())?;
@@ -295,22 +240,6 @@ fn read_photo(ctx: &Ctx, args: &Args, path: &Path) -> anyhow::Result<Photo> {
     Ok(photo?)
 }
 
-/// Runs the network at the working size and applies its result to the full-size photo, with a
-/// progress bar over its blocks.
-fn run_network(
-    ctx: &Ctx,
-    net: &Network,
-    photo: Image,
-    ct_work: &[f32],
-    work: (usize, usize),
-    device: &candle_core::Device,
-) -> anyhow::Result<Image> {
-    let bars = crate::ctx::Bars::new(ctx);
-    Ok(pixl_pipeline::relight::relight(
-        net, photo, ct_work, work, device, &bars,
-    )?)
-}
-
 fn write_output(ctx: &Ctx, path: &Path, img: &Image) -> anyhow::Result<()> {
     let sp = spinner(ctx, &format!("writing {}", path.display()));
     pixl_core::io::write_image(path, img)?;
@@ -332,305 +261,132 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         inputs.push(p);
     }
     pixl_core::output::check_output(&args.out, OUTPUT_EXTS, &inputs)?;
-    if args.intrinsics.is_some() {
-        return run_with_intrinsics(&args, &photo, ctx);
+    let lights = light_set(&args)?;
+    let like = args.like.as_deref().map(like_target).transpose()?;
+    if let Some(dir) = &args.keep {
+        let kept = if args.like.is_some() { job::KEPT_LIKE } else { job::KEPT };
+        pixl_core::output::check_output_dir(dir, args.force, kept, &inputs)?;
     }
-    if let Some(target) = &args.like {
-        return run_like(&args, &photo, target, ctx);
-    }
-    run_pipeline(&args, &photo, ctx)
-}
-
-/// `--source PHOTO --intrinsics CT`.
-fn run_with_intrinsics(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()> {
-    let ct_path = args.intrinsics.as_deref().unwrap_or(Path::new(""));
     let device = crate::device::parse_device(&args.device)?;
-    let net = load_network(ctx, args, &device)?;
-    let photo = read_photo(ctx, args, photo_path)?.image;
-    let size = (photo.width, photo.height);
-    let work = fullres::working_size(size.0, size.1, args.max_side);
-    let ct = pixl_intrinsics::ct::read_ct(ct_path)?;
-    let ct_size = (ct.width(), ct.height());
-    if ct_size != size && ct_size != work {
-        bail!(
-            "source {} is {}x{} but intrinsics {} are {}x{}; give C_T at the photo's size or at the working size {}x{} (--max-side {})",
-            photo_path.display(),
-            size.0,
-            size.1,
-            ct_path.display(),
-            ct_size.0,
-            ct_size.1,
-            work.0,
-            work.1,
-            args.max_side
-        );
-    }
-    // Full size: the photo (f32), the encoded output, and a full-size C_T (9 f32 + its EXR decode).
-    let per_px = 12 + 8 + if ct_size == size { 72 } else { 0 };
-    let budget = check_budget(&net, size, args.max_side, per_px, max_memory(args)?)?;
-    let ct_work = ct_at_working_size(&ct, budget.work)?;
-    drop(ct);
-    let relit = run_network(ctx, &net, photo, &ct_work, budget.work, &device)?;
-    write_output(ctx, &args.out, &relit)?;
-    report(ctx, args, &net, size, &budget, &[], None)
+    let net = load_network(ctx, &args, &device)?;
+    let photo = read_photo(ctx, &args, &photo)?;
+    let size = photo.size();
+    let max_memory = max_memory(&args)?;
+    // Refused before any estimator is loaded.
+    let kind = match (&args.intrinsics, &args.like) {
+        (Some(_), _) => LightingKind::Intrinsics,
+        (None, Some(_)) => LightingKind::Like,
+        (None, None) => LightingKind::Lights,
+    };
+    job::check(&net, size, args.max_side, max_memory, kind)?;
+    let job = |lighting| Job {
+        photo,
+        lighting,
+        max_side: args.max_side,
+        render: pixl_pipeline::render::RenderSettings {
+            spp: args.spp,
+            bounces: args.bounces,
+            seed: args.seed,
+        },
+        max_memory,
+        keep: args.keep.clone(),
+    };
+    let bars = crate::ctx::Bars::new(ctx);
+    let (relit, like) = if let Some(path) = &args.intrinsics {
+        (job::run(&net, job(Lighting::Intrinsics(path)), &device, &bars)?, None)
+    } else if let Some((target_path, target)) = &like {
+        let (estimator, resolved) = like_estimator(&args, target, ctx)?;
+        let lighting = Lighting::Like {
+            target,
+            estimator: &estimator,
+        };
+        let relit = job::run(&net, job(lighting), &device, &bars)?;
+        let info = like_info(&args, target_path, &relit, &estimator, &resolved, ctx);
+        (relit, Some(info))
+    } else {
+        let da3;
+        let depth = match &args.depth {
+            Some(path) => DepthSource::File {
+                path: path.clone(),
+                how: depth_file(&args)?,
+            },
+            None => {
+                da3 = crate::estimators::load_depth_model(
+                    crate::estimators::DepthModel::Da3Metric,
+                    pixl_pipeline::estimators::DEFAULT_PROCESS_RES,
+                    "cpu",
+                    &args.models,
+                    ctx,
+                )
+                .context(
+                    "reconstructing the scene without --depth (pass --depth FILE with a depth map of the photo, or \
+                     make Depth Anything 3's weights available: `pixl models fetch da3-metric`, or --models DIR \
+                     holding them)",
+                )?
+                .0;
+                DepthSource::Estimate(&da3)
+            }
+        };
+        let lighting = Lighting::Lights { lights: &lights, depth };
+        (job::run(&net, job(lighting), &device, &bars)?, None)
+    };
+    write_output(ctx, &args.out, &relit.image)?;
+    report(ctx, &args, &net, size, &relit, like)
 }
 
-fn report(
-    ctx: &Ctx,
-    args: &Args,
-    net: &Network,
-    size: (usize, usize),
-    budget: &Budget,
-    kept: &[PathBuf],
-    like: Option<serde_json::Value>,
-) -> anyhow::Result<()> {
-    if args.json {
-        let mut v = serde_json::json!({
-            "output": args.out.display().to_string(),
-            "width": size.0,
-            "height": size.1,
-            "working_width": budget.work.0,
-            "working_height": budget.work.1,
-            "tokens": budget.plan.tokens,
-            "planned_network_bytes": budget.network(),
-            "planned_peak_stage": budget.plan.peak().0,
-            "planned_full_size_bytes": budget.full,
-            "weights": net.name,
-            "kept": kept.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
-        });
-        if let (Some(like), serde_json::Value::Object(m)) = (like, &mut v) {
-            m.insert("like".into(), like);
-        }
-        return ctx.print_json(&v);
-    }
-    ctx.say(format!(
-        "wrote {} ({}x{}; network at {}x{}, planned peak {})",
-        args.out.display(),
-        size.0,
-        size.1,
-        budget.work.0,
-        budget.work.1,
-        gb(budget.total())
-    ));
-    Ok(())
-}
-
-/// The files `--keep` writes directly in its folder.
-const KEPT: &[&str] = &[
-    "scene",
-    "passes.exr",
-    "CT.exr",
-    "CT_sheet.png",
-    "render.png",
-    "before_after.png",
-];
-
-/// The photo's metric depth at its size: `--depth` (of `--depth-kind`), else Depth Anything 3.
-fn depth_of(args: &Args, photo: &Photo, ctx: &Ctx) -> anyhow::Result<pixl_render::depth::DepthMap> {
-    let Some(path) = &args.depth else {
-        let est = crate::estimators::estimate_depth(
-            photo,
-            crate::estimators::DepthModel::Da3Metric,
-            pixl_pipeline::estimators::DEFAULT_PROCESS_RES,
-            "cpu",
-            &args.models,
-            ctx,
-        )
-        .context(
-            "reconstructing the scene without --depth (pass --depth FILE with a depth map of the photo, or make \
-             Depth Anything 3's weights available: `pixl models fetch da3-metric`, or --models DIR holding them)",
-        )?;
-        let (w, h) = photo.size();
-        return Ok(pixl_render::depth::DepthMap::new(
-            w,
-            h,
-            pixl_pipeline::estimators::depth_without_sky(&est.estimate),
-        )?);
-    };
-    let kind = match args.depth_kind.as_deref() {
-        None => pixl_pipeline::depth::DepthKind::Metric,
-        Some(k) => pixl_pipeline::depth::DepthKind::parse(k)
-            .with_context(|| format!("--depth-kind {k:?}: give metric, relative or disparity"))?,
-    };
-    let how = pixl_pipeline::depth::DepthFile {
-        kind,
-        range: args
-            .depth_range
-            .as_deref()
-            .map(pixl_pipeline::depth::parse_range)
-            .transpose()?,
-        ..Default::default()
-    };
-    pixl_pipeline::depth::read_depth_file(path, &how, photo.size()).context("reconstructing the scene")
-}
-
-/// From a photo: reconstruct → lights → render → compose → network. The photo is decoded once.
-fn run_pipeline(args: &Args, photo_path: &Path, ctx: &Ctx) -> anyhow::Result<()> {
-    // Everything that can be checked without work, first.
-    let specs = args
+/// The lights of `--preset`, `--light` and `--scene`, parsed and checked before any work.
+fn light_set(args: &Args) -> anyhow::Result<LightSet> {
+    let placed = args
         .light
         .iter()
-        .map(|w| parse_light(w))
+        .map(|w| Ok((w.clone(), parse_light_words(w)?)))
         .collect::<anyhow::Result<Vec<_>>>()?;
-    let file_lights = args.scene.as_deref().map(read_lights).transpose()?;
-    if args.preset.is_none() && specs.is_empty() && file_lights.is_none() {
+    let fixed = args.scene.as_deref().map(read_lights_file).transpose()?;
+    let set = LightSet {
+        preset: args.preset.clone(),
+        placed,
+        fixed: fixed.unwrap_or_default(),
+    };
+    if set.is_empty() && args.intrinsics.is_none() && args.like.is_none() {
         bail!(
             "give the new lighting: --preset NAME, --light 'FLAGS' or --scene lights.toml (or --intrinsics CT.exr, \
              or --like TARGET.jpg; see --help)"
         );
     }
-    if let Some(k) = &args.depth_kind {
-        if pixl_pipeline::depth::DepthKind::parse(k).is_none() {
-            bail!("--depth-kind {k:?}: give metric, relative or disparity");
-        }
+    if args.depth.is_some() {
+        depth_file(args)?;
     }
-    if let Some(r) = &args.depth_range {
-        pixl_pipeline::depth::parse_range(r)?;
-    }
-    if let Some(dir) = &args.keep {
-        let mut inputs: Vec<&Path> = vec![photo_path];
-        inputs.extend(
-            [&args.depth, &args.scene, &args.weights]
-                .into_iter()
-                .flatten()
-                .map(|p| p.as_path()),
-        );
-        pixl_core::output::check_output_dir(dir, args.force, KEPT, &inputs)?;
-    }
-    let device = crate::device::parse_device(&args.device)?;
-    let net = load_network(ctx, args, &device)?;
-    let photo = read_photo(ctx, args, photo_path)?;
-    let size = photo.size();
-    let budget = check_budget(&net, size, args.max_side, 12 + 8, max_memory(args)?)?;
-    let work = budget.work;
-    let bars = crate::ctx::Bars::new(ctx);
-
-    // 1. Reconstruct: the mesh needs no more vertices than the render has pixels.
-    let depth = depth_of(args, &photo, ctx)?;
-    let sp = spinner(ctx, "reconstructing the scene");
-    let settings = pixl_pipeline::reconstruct::MeshSettings {
-        stride: Some(size.0.max(size.1).div_ceil(work.0.max(work.1)).max(1)),
-        ..Default::default()
-    };
-    let depth_name = match &args.depth {
-        Some(p) => p.display().to_string(),
-        None => "the estimated depth".to_string(),
-    };
-    let geometry = pixl_pipeline::reconstruct::reconstruct(
-        &photo,
-        &depth,
-        &depth_name,
-        &pixl_pipeline::reconstruct::Maps::default(),
-        &settings,
-        &bars,
-    );
-    sp.finish_and_clear();
-    let geometry = geometry.context("reconstructing the scene")?;
-    drop(depth);
-
-    // 2. Lights, on the scene in memory (its mesh and texture are not written unless --keep).
-    let mut scene = geometry.scene.clone();
-    scene.lights.clear();
-    if let Some(p) = &args.preset {
-        apply_preset(&mut scene, p, false)?;
-    }
-    for (words, spec) in args.light.iter().zip(&specs) {
-        let (light, notes) = spec.build(&scene).with_context(|| format!("--light '{words}'"))?;
-        for n in notes {
-            ctx.say(n);
-        }
-        scene.lights.push(light);
-    }
-    if let Some(lights) = file_lights {
-        scene.lights.extend(lights);
-    }
-    scene.validate()?;
-    let scene_name = match &args.keep {
-        Some(dir) => {
-            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-            let path = geometry.write(
-                &dir.join("scene"),
-                pixl_pipeline::reconstruct::MeshFormat::Glb,
-                &scene.lights,
-            )?;
-            path.display().to_string()
-        }
-        None => "the reconstructed scene".to_string(),
-    };
-    drop(geometry);
-
-    // 3. Render at the working size and compose C_T.
-    let settings = pixl_pipeline::render::RenderSettings {
-        spp: args.spp,
-        bounces: args.bounces,
-        seed: args.seed,
-    };
-    let (film, composed) = pixl_pipeline::render::render_intrinsics(&scene, work, &settings, &bars)
-        .with_context(|| format!("rendering {scene_name}"))?;
-    drop(scene);
-    let ct = composed.ct;
-    let mut kept = Vec::new();
-    if let Some(dir) = &args.keep {
-        let sp = spinner(ctx, "writing the intermediates");
-        film.write_exr(&dir.join("passes.exr"))?;
-        pixl_core::io::write_png(
-            &dir.join("render.png"),
-            &film.combined_srgb(),
-            pixl_core::io::PngDepth::Eight,
-        )?;
-        pixl_intrinsics::ct::write_ct(&dir.join("CT.exr"), &ct)?;
-        let sheet = pixl_intrinsics::preview::preview_sheet(&ct)?;
-        pixl_core::io::write_png(&dir.join("CT_sheet.png"), &sheet, pixl_core::io::PngDepth::Eight)?;
-        sp.finish_and_clear();
-        kept.extend(KEPT[..5].iter().map(|n| dir.join(n)));
-    }
-    drop(film);
-    let ct_work = ct_at_working_size(&ct, work)?;
-    drop(ct);
-
-    // 4. The network, applied at full size.
-    let photo = photo.image;
-    let before = args
-        .keep
-        .as_ref()
-        .map(|_| pixl_core::resample::area_resize(&photo, work.0, work.1))
-        .transpose()?;
-    let relit = run_network(ctx, &net, photo, &ct_work, work, &device)?;
-    write_output(ctx, &args.out, &relit)?;
-    if let (Some(dir), Some(before)) = (&args.keep, before) {
-        let after = pixl_core::resample::area_resize(&relit, work.0, work.1)?;
-        let pair = Image::hstack(&[&before, &after])?;
-        let path = dir.join("before_after.png");
-        pixl_core::io::write_png(&path, &pair, pixl_core::io::PngDepth::Eight)?;
-        kept.push(path);
-        ctx.say(format!("intermediates in {}", dir.display()));
-    }
-    report(ctx, args, &net, size, &budget, &kept, None)
+    Ok(set)
 }
 
-/// The files `--keep` writes with `--like`.
-const KEPT_LIKE: &[&str] = &["CT.exr", "CT_sheet.png", "before_after.png"];
+/// How to read `--depth` (`--depth-kind`, `--depth-range`).
+fn depth_file(args: &Args) -> anyhow::Result<DepthFile> {
+    let kind = match args.depth_kind.as_deref() {
+        None => DepthKind::Metric,
+        Some(k) => {
+            DepthKind::parse(k).with_context(|| format!("--depth-kind {k:?}: give metric, relative or disparity"))?
+        }
+    };
+    let range = args
+        .depth_range
+        .as_deref()
+        .map(pixl_pipeline::depth::parse_range)
+        .transpose()?;
+    Ok(DepthFile {
+        kind,
+        range,
+        ..Default::default()
+    })
+}
 
-/// `PHOTO --like TARGET`: the target's C_T from Marigold-IID-Lighting → the network. Both photos
-/// are read and the network's memory planned before the estimator's weights are looked up;
-/// nothing is written until the relit image exists.
-fn run_like(args: &Args, photo_path: &Path, target_path: &Path, ctx: &Ctx) -> anyhow::Result<()> {
-    if let Some(dir) = &args.keep {
-        let mut inputs: Vec<&Path> = vec![photo_path, target_path];
-        inputs.extend(args.weights.as_deref());
-        pixl_core::output::check_output_dir(dir, args.force, KEPT_LIKE, &inputs)?;
-    }
-    let device = crate::device::parse_device(&args.device)?;
-    let photo = read_photo(ctx, args, photo_path)?;
-    let target =
-        pixl_pipeline::like::read_target(target_path).with_context(|| format!("--like {}", target_path.display()))?;
-    let net = load_network(ctx, args, &device)?;
-    let size = photo.size();
-    // Full size: the photo (f32), the encoded output, the target's C_T at the photo's size (9 f32)
-    // and one of its maps being resized.
-    let budget = check_budget(&net, size, args.max_side, 12 + 8 + 36 + 12, max_memory(args)?)?;
-    let work = budget.work;
+/// `--like TARGET`, read and checked before any model is loaded.
+fn like_target(path: &Path) -> anyhow::Result<(PathBuf, Image)> {
+    let target = pixl_pipeline::like::read_target(path).with_context(|| format!("--like {}", path.display()))?;
+    Ok((path.to_owned(), target))
+}
 
+/// Marigold-IID-Lighting for `--like`, its weights found or fetched.
+fn like_estimator(args: &Args, target: &Image, ctx: &Ctx) -> anyhow::Result<(MarigoldLighting, Resolved)> {
     let opts = pixl_estimate::marigold::MarigoldOptions {
         steps: Some(args.like_steps.unwrap_or(pixl_pipeline::like::LIKE_STEPS)),
         resolution: args.like_res,
@@ -648,35 +404,35 @@ fn run_like(args: &Args, photo_path: &Path, target_path: &Path, ctx: &Ctx) -> an
          holding them)",
     )?;
     crate::iid::announce(&m, target.width, target.height, &opts, "target intrinsics")?;
-    let estimator = pixl_pipeline::estimators::MarigoldLighting::new(m, opts, resolved.spec.name)?;
+    Ok((MarigoldLighting::new(m, opts, resolved.spec.name)?, resolved))
+}
 
-    let before = args
-        .keep
-        .as_ref()
-        .map(|_| pixl_core::resample::area_resize(&photo.image, work.0, work.1))
-        .transpose()?;
-    let bars = crate::ctx::Bars::new(ctx);
-    let liked = pixl_pipeline::like::relight_like(&net, photo, &target, &estimator, work, &device, &bars)?;
-    drop(target);
-    write_output(ctx, &args.out, &liked.relit)?;
-
-    let ct = &liked.ct;
-    let mut kept = Vec::new();
-    if let (Some(dir), Some(before)) = (&args.keep, before) {
-        let sp = spinner(ctx, "writing the intermediates");
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-        pixl_intrinsics::ct::write_ct(&dir.join("CT.exr"), &ct.ct)?;
-        let sheet = pixl_intrinsics::preview::preview_sheet(&ct.ct)?;
-        pixl_core::io::write_png(&dir.join("CT_sheet.png"), &sheet, pixl_core::io::PngDepth::Eight)?;
-        let after = pixl_core::resample::area_resize(&liked.relit, work.0, work.1)?;
-        let pair = Image::hstack(&[&before, &after])?;
-        pixl_core::io::write_png(&dir.join("before_after.png"), &pair, pixl_core::io::PngDepth::Eight)?;
-        sp.finish_and_clear();
-        kept.extend(KEPT_LIKE.iter().map(|n| dir.join(n)));
-        ctx.say(format!("intermediates in {}", dir.display()));
+/// The `like` record of the JSON summary (and its line on the console).
+fn like_info(
+    args: &Args,
+    target: &Path,
+    relit: &Relit,
+    estimator: &MarigoldLighting,
+    resolved: &Resolved,
+    ctx: &Ctx,
+) -> serde_json::Value {
+    let Some(ct) = &relit.like else {
+        return serde_json::Value::Null;
+    };
+    if !args.json {
+        ctx.say(format!(
+            "lighting of {} ({}x{}) by {}; weights {} ({}), from {}",
+            target.display(),
+            ct.target_size.0,
+            ct.target_size.1,
+            ct.estimator,
+            resolved.spec.repo,
+            resolved.spec.licence,
+            resolved.source
+        ));
     }
-    let like = serde_json::json!({
-        "target": target_path.display().to_string(),
+    serde_json::json!({
+        "target": target.display().to_string(),
         "target_width": ct.target_size.0,
         "target_height": ct.target_size.1,
         "aspect_mismatch": ct.aspect_mismatch,
@@ -690,18 +446,45 @@ fn run_like(args: &Args, photo_path: &Path, target_path: &Path, ctx: &Ctx) -> an
             "source": resolved.source.to_string(),
             "licence": resolved.spec.licence,
         },
-    });
-    if !args.json {
-        ctx.say(format!(
-            "lighting of {} ({}x{}) by {}; weights {} ({}), from {}",
-            target_path.display(),
-            ct.target_size.0,
-            ct.target_size.1,
-            ct.estimator,
-            resolved.spec.repo,
-            resolved.spec.licence,
-            resolved.source
-        ));
+    })
+}
+
+fn report(
+    ctx: &Ctx,
+    args: &Args,
+    net: &Network,
+    size: (usize, usize),
+    relit: &Relit,
+    like: Option<serde_json::Value>,
+) -> anyhow::Result<()> {
+    let budget = &relit.budget;
+    if args.json {
+        let mut v = serde_json::json!({
+            "output": args.out.display().to_string(),
+            "width": size.0,
+            "height": size.1,
+            "working_width": budget.work.0,
+            "working_height": budget.work.1,
+            "tokens": budget.plan.tokens,
+            "planned_network_bytes": budget.network(),
+            "planned_peak_stage": budget.plan.peak().0,
+            "planned_full_size_bytes": budget.full,
+            "weights": net.name,
+            "kept": relit.kept.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
+        });
+        if let (Some(like), serde_json::Value::Object(m)) = (like, &mut v) {
+            m.insert("like".into(), like);
+        }
+        return ctx.print_json(&v);
     }
-    report(ctx, args, &net, size, &budget, &kept, Some(like))
+    ctx.say(format!(
+        "wrote {} ({}x{}; network at {}x{}, planned peak {})",
+        args.out.display(),
+        size.0,
+        size.1,
+        budget.work.0,
+        budget.work.1,
+        gb(budget.total())
+    ));
+    Ok(())
 }
