@@ -1,14 +1,12 @@
 //! The estimators as the commands use them: Depth Anything 3 with its weights resolved on the
 //! console ([`estimate_depth`], shared by `pixl estimate depth`, `pixl reconstruct` and `pixl
-//! relight`), Marigold-IID's materials and lighting decoded from a prediction ([`Materials`],
-//! [`ct_from_lighting`]), and a photo read for an estimator ([`read_photo`]).
+//! relight`) and a photo read for an estimator ([`read_photo`]).
 use crate::weights::WeightsArgs;
 use crate::Ctx;
-use anyhow::{bail, Context};
+use anyhow::bail;
 use pixl_core::Image;
 use pixl_estimate::da3::{Da3Variant, DepthEstimate};
 use pixl_estimate::hub::{self, Resolved};
-use pixl_estimate::marigold::IidPrediction;
 use pixl_pipeline::estimators::{Da3Depth, MIN_SIDE};
 use pixl_pipeline::exif::Focal;
 use pixl_pipeline::Photo;
@@ -38,38 +36,6 @@ impl DepthModel {
             DepthModel::Da3Mono => Da3Variant::Mono,
         }
     }
-}
-
-/// Estimated materials at the photo's size: linear albedo (RGB), roughness and metallic (1 channel).
-pub struct Materials {
-    pub albedo_linear: Image,
-    pub roughness: Image,
-    pub metallic: Image,
-}
-
-impl Materials {
-    /// From an Appearance prediction: albedo is sRGB-encoded (decoded here), the material map
-    /// holds roughness in R and metallicity in G.
-    pub fn from_prediction(p: &IidPrediction) -> anyhow::Result<Self> {
-        let albedo = p.get("albedo").context("the prediction has no albedo")?;
-        let material = p.get("material").context("the prediction has no material map")?;
-        let (w, h) = (albedo.width, albedo.height);
-        Ok(Self {
-            albedo_linear: albedo.map(|v| pixl_core::image::srgb_to_linear(v.clamp(0.0, 1.0))),
-            roughness: Image::from_fn(w, h, 1, |x, y, _| material.get(x, y, 0).clamp(0.0, 1.0)),
-            metallic: Image::from_fn(w, h, 1, |x, y, _| material.get(x, y, 1).clamp(0.0, 1.0)),
-        })
-    }
-}
-
-/// C_T of a photo from a Lighting prediction (A, S, R linear; App. B's rescale).
-pub fn ct_from_lighting(p: &IidPrediction) -> anyhow::Result<(pixl_intrinsics::ct::Ct, f32)> {
-    let get = |n: &str| p.get(n).with_context(|| format!("the prediction has no {n} map"));
-    Ok(pixl_intrinsics::compose::ct_from_decomposition(
-        get("albedo")?,
-        get("shading")?,
-        get("residual")?,
-    )?)
 }
 
 /// Reads a photo for an estimator: RGB, finite, at least [`MIN_SIDE`] on each side, sRGB-encoded

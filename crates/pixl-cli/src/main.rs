@@ -12,7 +12,6 @@ mod ctx;
 mod device;
 mod estimators;
 mod iid;
-mod report;
 mod weights;
 
 pub use ctx::Ctx;
@@ -42,7 +41,7 @@ enum Command {
     /// Run the whole pipeline on the bundled example scene and write an HTML report.
     Demo(cmd::demo::Args),
     /// Relight a photograph: from the photo and new lights in one command, or given its C_T.
-    Relight(cmd::relight::Args),
+    Relight(Box<cmd::relight::Args>),
     /// Create or inspect network weights.
     #[command(subcommand)]
     Model(cmd::model::Command),
@@ -128,7 +127,7 @@ fn main() -> ExitCode {
 fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
     match command {
         Command::Demo(a) => cmd::demo::run(a, ctx),
-        Command::Relight(a) => cmd::relight::run(a, ctx),
+        Command::Relight(a) => cmd::relight::run(*a, ctx),
         Command::Model(c) => cmd::model::run(c, ctx),
         Command::Weights(c) => cmd::weights::run(c, ctx),
         Command::Bench(c) => cmd::bench::run(c, ctx),

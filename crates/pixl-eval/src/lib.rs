@@ -10,12 +10,14 @@
 //!   shows up in relit images, without ground truth.
 //! - [`grid`]: the patch-grid score ([`patch_grid_amplitude`]): the RMS of an image's pattern
 //!   repeating with the network's patch period.
+//! - [`html`]: a self-contained HTML report of image panels and tables (`pixl demo`'s).
 //! - [`run`]: pair lists and [`run_eval`].
 //! - [`report`]: `results.md` / `results.json` / `per_pair.csv`.
 //! - [`sheet`]: the contact sheet of the first pairs ([`contact_sheet`]).
 pub mod baselines;
 pub mod error;
 pub mod grid;
+pub mod html;
 pub mod lpips;
 pub mod metrics;
 pub mod report;

@@ -202,3 +202,36 @@ impl LightingEstimator for MarigoldLighting {
         Decomposition::from_prediction(&pred)
     }
 }
+
+/// Estimated materials at the photo's size (Marigold-IID-Appearance): linear albedo (RGB),
+/// roughness and metallic (one channel each).
+pub struct Materials {
+    pub albedo_linear: Image,
+    pub roughness: Image,
+    pub metallic: Image,
+}
+
+impl Materials {
+    /// From an Appearance prediction: albedo is sRGB-encoded (decoded here), the material map
+    /// holds roughness in R and metallicity in G.
+    pub fn from_prediction(p: &IidPrediction) -> Result<Self> {
+        let get = |n: &str, what: &str| {
+            p.get(n)
+                .ok_or_else(|| PipelineError::input(format!("the prediction has no {what}")))
+        };
+        let albedo = get("albedo", "albedo")?;
+        let material = get("material", "material map")?;
+        let (w, h) = (albedo.width, albedo.height);
+        Ok(Self {
+            albedo_linear: albedo.map(|v| pixl_core::image::srgb_to_linear(v.clamp(0.0, 1.0))),
+            roughness: Image::from_fn(w, h, 1, |x, y, _| material.get(x, y, 0).clamp(0.0, 1.0)),
+            metallic: Image::from_fn(w, h, 1, |x, y, _| material.get(x, y, 1).clamp(0.0, 1.0)),
+        })
+    }
+}
+
+/// `C_T` of a photo from a Lighting prediction at its size (App. B's rescale), and τ.
+pub fn ct_from_lighting(p: &IidPrediction) -> Result<(pixl_intrinsics::ct::Ct, f32)> {
+    let d = Decomposition::from_prediction(p)?;
+    crate::like::ct_from_decomposition(&d, (d.albedo.width, d.albedo.height))
+}

@@ -33,6 +33,7 @@ use pixl_intrinsics::ct::Ct;
 use pixl_render::depth::DepthMap;
 use pixl_render::presets::apply_preset;
 use pixl_render::scene::Light;
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 /// The files `keep` receives from a job with lights (`scene` is a folder).
@@ -122,6 +123,8 @@ pub enum DepthSource<'a> {
     File { path: PathBuf, how: DepthFile },
     /// An estimator run on the photo.
     Estimate(&'a dyn DepthEstimator),
+    /// Metric z-depth at the photo's size, already read or estimated.
+    Given(DepthMap),
 }
 
 /// Where the target lighting comes from.
@@ -241,10 +244,21 @@ pub fn run(net: &Network, job: Job, device: &Device, observer: &dyn Observer) ->
 }
 
 /// The photo's metric depth at its size.
-fn depth_map(photo: &Photo, depth: &DepthSource) -> Result<DepthMap> {
+fn depth_map<'a>(photo: &Photo, depth: &'a DepthSource) -> Result<Cow<'a, DepthMap>> {
     match depth {
-        DepthSource::File { path, how } => read_depth_file(path, how, photo.size()),
-        DepthSource::Estimate(est) => est.estimate(&photo.srgb(), photo.focal.px)?.to_metric(photo.size()),
+        DepthSource::File { path, how } => read_depth_file(path, how, photo.size()).map(Cow::Owned),
+        DepthSource::Estimate(est) => est
+            .estimate(&photo.srgb(), photo.focal.px)
+            .and_then(|d| d.to_metric(photo.size()))
+            .map(Cow::Owned),
+        DepthSource::Given(map) if (map.width, map.height) == photo.size() => Ok(Cow::Borrowed(map)),
+        DepthSource::Given(map) => Err(PipelineError::input(format!(
+            "the depth is {}x{}, the photo {}x{}",
+            map.width,
+            map.height,
+            photo.size().0,
+            photo.size().1
+        ))),
     }
     .map_err(|e| e.context("reconstructing the scene"))
 }
@@ -263,6 +277,7 @@ fn lit_ct(
     let depth_name = match depth {
         DepthSource::File { path, .. } => path.display().to_string(),
         DepthSource::Estimate(_) => "the estimated depth".to_string(),
+        DepthSource::Given(_) => "the photo's depth".to_string(),
     };
     let map = depth_map(photo, depth)?;
     // The mesh needs no more vertices than the render has pixels.

@@ -20,9 +20,12 @@
 //!   [`like::LightingEstimator`] (Marigold-IID-Lighting in [`estimators`]), then the network.
 //! - [`job`]: one photo end to end — a [`job::Job`] (photo + [`job::Lighting`]) through the
 //!   stages above to the relit photo, intermediates written only when asked.
+//! - [`batch`]: many photos in one process — inputs from folders, patterns, lists or a
+//!   manifest, a stable shard of them, each a job, resumable through a log.
 //! - [`observe`]: how a caller watches long stages ([`observe::Observer`]).
 //!
 //! Typed errors ([`PipelineError`]); no stage prints: notes and progress go to the observer.
+pub mod batch;
 pub mod depth;
 pub mod error;
 pub mod estimators;

@@ -44,10 +44,19 @@ pub struct Network {
     pub licence: Option<&'static str>,
 }
 
+/// How many networks this process has loaded ([`Network::loads`]).
+static LOADS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
 impl Network {
+    /// How many networks this process has loaded so far (a batch loads one).
+    pub fn loads() -> usize {
+        LOADS.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
     /// Loads `weights` (or the bundled ones) on `device` in `dtype`; with `int8`, the linear
     /// layers are quantized where the CPU has AVX-512 VNNI (a warning and f32 elsewhere).
     pub fn load(weights: Option<&Path>, dtype: DType, device: &Device, int8: bool) -> Result<Network> {
+        LOADS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let mut licence = None;
         let (cfg, mut model, name) = match weights {
             Some(w) if is_native(w)? => {

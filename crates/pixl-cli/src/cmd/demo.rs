@@ -27,11 +27,11 @@
 //!
 //! Output: PNGs per preset and one self-contained `report.html` (images inlined).
 use crate::ctx::Bars;
-use crate::report::{Panel, Report, Row, Table};
 use crate::Ctx;
 use anyhow::{Context, Result};
 use candle_core::{DType, Device};
 use pixl_core::Image;
+use pixl_eval::html::{Panel, Report, Row, Table};
 use pixl_pipeline::relight::{ct_at_working_size, relight, Network};
 use pixl_pipeline::render::{compose, render_film, render_intrinsics, RenderSettings};
 use pixl_render::presets::{apply_preset, PRESETS};
@@ -257,7 +257,7 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
         rows,
     };
     let html_path = args.out.join("report.html");
-    pixl_core::io::atomic_write_bytes(&html_path, report.to_html()?.as_bytes())?;
+    pixl_core::io::atomic_write_bytes(&html_path, report.to_html().as_bytes())?;
     if args.json {
         println!(
             "{}",

@@ -14,7 +14,7 @@
 //!   `pixl reconstruct` builds no mesh there and the scene's world stands in for it.
 //! - **Outputs** are checked before any work (extension, folder exists, none is the photo, none
 //!   repeats), each written atomically.
-use crate::estimators::{ct_from_lighting, estimate_depth, read_photo, DepthModel, Materials};
+use crate::estimators::{estimate_depth, read_photo, DepthModel};
 use crate::iid::{self, IidArgs};
 use crate::weights::WeightsArgs;
 use crate::Ctx;
@@ -24,6 +24,7 @@ use pixl_core::Image;
 use pixl_estimate::hub::Resolved;
 use pixl_estimate::marigold::IidVariant;
 use pixl_pipeline::estimators::{check_process_res, depth_without_sky};
+use pixl_pipeline::estimators::{ct_from_lighting, Materials};
 use pixl_pipeline::Photo;
 use std::path::{Path, PathBuf};
 

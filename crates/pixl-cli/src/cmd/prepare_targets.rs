@@ -89,7 +89,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             let pred = m
                 .predict(&photo, &opts, &mut |_| {})
                 .with_context(|| format!("{}: estimating its intrinsics", image.display()))?;
-            let (ct, _) = crate::estimators::ct_from_lighting(&pred)?;
+            let (ct, _) = pixl_pipeline::estimators::ct_from_lighting(&pred)?;
             pixl_intrinsics::ct::write_ct(out, &ct)?;
             written.push(out.clone());
             pb.inc(1);

@@ -235,7 +235,7 @@ fn maps_of(args: &Args, photo: &Photo, ctx: &Ctx) -> anyhow::Result<Maps> {
             ..Default::default()
         };
         let pred = crate::iid::run(&m, &photo.srgb(), &iid, "materials", ctx)?;
-        let mats = crate::estimators::Materials::from_prediction(&pred)?;
+        let mats = pixl_pipeline::estimators::Materials::from_prediction(&pred)?;
         ctx.say(format!(
             "materials from marigold-appearance ({} steps at {}x{}; weights: {} from {})",
             pred.steps, pred.processed_size.0, pred.processed_size.1, resolved.spec.licence, resolved.source

@@ -37,6 +37,7 @@ use anyhow::{bail, Context};
 use indicatif::{ProgressBar, ProgressStyle};
 use pixl_core::Image;
 use pixl_estimate::hub::Resolved;
+use pixl_pipeline::batch::{self, Item, ManifestRow, Setup, Shard};
 use pixl_pipeline::depth::{DepthFile, DepthKind};
 use pixl_pipeline::estimators::MarigoldLighting;
 use pixl_pipeline::job::{self, DepthSource, Job, LightSet, Lighting, LightingKind, Relit};
@@ -60,6 +61,8 @@ const LIKE_CONFLICTS: &[&str] = &[
     "spp",
     "bounces",
 ];
+const NO_LIGHTING: &str = "give the new lighting: --preset NAME, --light 'FLAGS' or --scene lights.toml (or \
+                           --intrinsics CT.exr, or --like TARGET.jpg; see --help)";
 /// Output formats, by extension.
 const OUTPUT_EXTS: &[&str] = &["png", "jpg", "jpeg", "exr"];
 
@@ -71,7 +74,9 @@ pixl relight photo.jpg --depth depth.exr --light '--type spot --from left' -o re
 pixl relight photo.jpg --depth depth.exr --light '--at-pixel 640,300' --light '--type sun --azimuth 40 --elevation 50' -o relit.png\n  \
 pixl relight photo.jpg --depth depth.exr --scene lights.toml -o relit.png\n  \
 pixl relight --source photo.png --intrinsics ct.exr --weights model.safetensors --out relit.png\n  \
-pixl relight photo.jpg --like same-view-other-light.jpg -o relit.png --keep steps/\n\n\
+pixl relight photo.jpg --like same-view-other-light.jpg -o relit.png --keep steps/\n  \
+pixl relight shots/ --depth-dir depths/ --preset cool-side-flash -o relit/             # a folder: a batch\n  \
+pixl relight --manifest jobs.csv -o relit/ --shard auto --shard-count 8                 # one shard of a cluster job\n\n\
 From a photo, `pixl relight` runs reconstruct -> lights -> render -> compose -> network. Lights: --preset\n\
 (the paper's five), --light 'FLAGS' (one light, the flags of `pixl light add`; repeatable), --scene FILE\n\
 (the [[lights]] of a .toml/.json scene file, in the reconstructed scene's coordinates). They add up.\n\
@@ -88,12 +93,22 @@ targets are (App. B: joint 98th percentile of shading and residual) and resized 
 depth, mesh or render, so no Depth Anything 3 weights. The two photos should show the same view: a target\n\
 of another aspect ratio is stretched to the photo's frame (a warning above 3 %). With --like, --keep DIR\n\
 keeps CT.exr (at the photo's size: --intrinsics CT.exr gives the same result again), CT_sheet.png and\n\
-before_after.png.\n\n",
+before_after.png.\n\n\
+Many photos: several PHOTOs, a folder (searched recursively), a quoted pattern ('shots/*.jpg'), --inputs\n\
+LIST (one path per line) or --manifest FILE (.csv with a header row, or .jsonl: columns photo, preset,\n\
+light (several separated by ';'), scene, like, intrinsics, depth; a row without lighting takes the\n\
+flags'). -o is then a folder; each output keeps its photo's relative name (extension: --format, else the\n\
+photo's). The models are loaded once and the next photo is decoded while the network runs. Every photo's\n\
+outcome is a line of OUT/pixl-batch.jsonl; a rerun skips photos done from the same input and set-up\n\
+(--force redoes them); a photo that fails is reported and the others go on; the exit code is 1 if any\n\
+failed. --shard I/N relights the I-th of N disjoint shares (auto: I from JOB_COMPLETION_INDEX or\n\
+SLURM_ARRAY_TASK_ID, N from --shard-count, PIXL_SHARD_COUNT or SLURM_ARRAY_TASK_COUNT).\n\n",
 crate::scene_axes_help!()))]
 pub struct Args {
-    /// The photo to relight (.png, .jpg or .exr); the same as --source.
+    /// The photo to relight (.png, .jpg or .exr); the same as --source. Several photos, a folder
+    /// or a quoted pattern make a batch (see below).
     #[arg(value_name = "PHOTO", conflicts_with = "source")]
-    pub photo: Option<PathBuf>,
+    pub photo: Vec<PathBuf>,
     /// Source photograph I_S (.png, .jpg or .exr; RGB, values in [0, 1]).
     #[arg(long)]
     pub source: Option<PathBuf>,
@@ -101,9 +116,29 @@ pub struct Args {
     /// size or at the working size. Given, the photo is relit with it (no reconstruction).
     #[arg(long, conflicts_with_all = ["preset", "light", "scene", "depth", "keep"])]
     pub intrinsics: Option<PathBuf>,
-    /// Output image (.png: 16-bit; .jpg; .exr: 32-bit float). Its folder must exist.
+    /// Output image (.png: 16-bit; .jpg; .exr: 32-bit float). Its folder must exist. With many
+    /// photos, the output folder (created).
     #[arg(short = 'o', long)]
     pub out: PathBuf,
+    /// A file listing photos (or folders, or patterns), one per line, relative to its folder.
+    #[arg(long, value_name = "LIST")]
+    pub inputs: Option<PathBuf>,
+    /// A .csv or .jsonl file of photos, each with its own lighting and depth (see below).
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["source", "inputs"])]
+    pub manifest: Option<PathBuf>,
+    /// With many photos: a folder of depth maps named as the photos (same relative path, .exr,
+    /// .png or .npy), used as --depth is.
+    #[arg(long, value_name = "DIR", conflicts_with = "depth")]
+    pub depth_dir: Option<PathBuf>,
+    /// With many photos: relight only shard I of N (I/N, 0-based), or `auto` (see below).
+    #[arg(long, value_name = "I/N|auto")]
+    pub shard: Option<String>,
+    /// The number of shards for --shard auto.
+    #[arg(long, value_name = "N", requires = "shard")]
+    pub shard_count: Option<usize>,
+    /// With many photos: the outputs' format (default: each photo's own).
+    #[arg(long, value_parser = clap::builder::PossibleValuesParser::new(["png", "jpg", "exr"]))]
+    pub format: Option<String>,
     #[arg(long, value_name = "bundled|pixlrelight|FILE", help = crate::weights::NETWORK_WEIGHTS_HELP)]
     pub weights: Option<PathBuf>,
     /// Longest side the network works at (the paper trains at 512); the result is applied at the
@@ -182,8 +217,9 @@ pub struct Args {
     /// Keep every intermediate in this folder (created; must be empty unless --force).
     #[arg(long, value_name = "DIR")]
     pub keep: Option<PathBuf>,
-    /// Allow --keep to write into a folder that has files in it.
-    #[arg(long, requires = "keep")]
+    /// Allow --keep to write into a folder that has files in it; with many photos, also redo the
+    /// photos already done.
+    #[arg(long)]
     pub force: bool,
     /// Print a JSON summary on stdout (sizes, planned memory, files written).
     #[arg(long)]
@@ -249,10 +285,14 @@ fn write_output(ctx: &Ctx, path: &Path, img: &Image) -> anyhow::Result<()> {
 
 pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let ctx = &ctx.for_json(args.json);
-    let photo = match (&args.photo, &args.source) {
-        (Some(p), _) | (None, Some(p)) => p.clone(),
-        (None, None) => bail!("give the photo: `pixl relight photo.jpg --preset NAME -o relit.png` (see --help)"),
+    let photo = match (args.photo.as_slice(), &args.source) {
+        _ if is_batch(&args) => return run_batch(&args, ctx),
+        ([p], _) | ([], Some(p)) => p.clone(),
+        _ => bail!("give the photo: `pixl relight photo.jpg --preset NAME -o relit.png` (see --help)"),
     };
+    if args.shard.is_some() || args.format.is_some() || args.depth_dir.is_some() {
+        bail!("--shard, --format and --depth-dir are for many photos (a folder, a pattern, --inputs or --manifest)");
+    }
     let mut inputs: Vec<&Path> = vec![&photo];
     for p in [&args.intrinsics, &args.weights, &args.depth, &args.scene, &args.like]
         .into_iter()
@@ -262,6 +302,9 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     }
     pixl_core::output::check_output(&args.out, OUTPUT_EXTS, &inputs)?;
     let lights = light_set(&args)?;
+    if lights.is_empty() && args.intrinsics.is_none() && args.like.is_none() {
+        bail!(NO_LIGHTING);
+    }
     let like = args.like.as_deref().map(like_target).transpose()?;
     if let Some(dir) = &args.keep {
         let kept = if args.like.is_some() { job::KEPT_LIKE } else { job::KEPT };
@@ -295,7 +338,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let (relit, like) = if let Some(path) = &args.intrinsics {
         (job::run(&net, job(Lighting::Intrinsics(path)), &device, &bars)?, None)
     } else if let Some((target_path, target)) = &like {
-        let (estimator, resolved) = like_estimator(&args, target, ctx)?;
+        let (estimator, resolved) = like_estimator(&args, Some(target), ctx)?;
         let lighting = Lighting::Like {
             target,
             estimator: &estimator,
@@ -311,19 +354,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
                 how: depth_file(&args)?,
             },
             None => {
-                da3 = crate::estimators::load_depth_model(
-                    crate::estimators::DepthModel::Da3Metric,
-                    pixl_pipeline::estimators::DEFAULT_PROCESS_RES,
-                    "cpu",
-                    &args.models,
-                    ctx,
-                )
-                .context(
-                    "reconstructing the scene without --depth (pass --depth FILE with a depth map of the photo, or \
-                     make Depth Anything 3's weights available: `pixl models fetch da3-metric`, or --models DIR \
-                     holding them)",
-                )?
-                .0;
+                da3 = load_da3(&args, ctx)?;
                 DepthSource::Estimate(&da3)
             }
         };
@@ -347,12 +378,6 @@ fn light_set(args: &Args) -> anyhow::Result<LightSet> {
         placed,
         fixed: fixed.unwrap_or_default(),
     };
-    if set.is_empty() && args.intrinsics.is_none() && args.like.is_none() {
-        bail!(
-            "give the new lighting: --preset NAME, --light 'FLAGS' or --scene lights.toml (or --intrinsics CT.exr, \
-             or --like TARGET.jpg; see --help)"
-        );
-    }
     if args.depth.is_some() {
         depth_file(args)?;
     }
@@ -386,7 +411,7 @@ fn like_target(path: &Path) -> anyhow::Result<(PathBuf, Image)> {
 }
 
 /// Marigold-IID-Lighting for `--like`, its weights found or fetched.
-fn like_estimator(args: &Args, target: &Image, ctx: &Ctx) -> anyhow::Result<(MarigoldLighting, Resolved)> {
+fn like_estimator(args: &Args, target: Option<&Image>, ctx: &Ctx) -> anyhow::Result<(MarigoldLighting, Resolved)> {
     let opts = pixl_estimate::marigold::MarigoldOptions {
         steps: Some(args.like_steps.unwrap_or(pixl_pipeline::like::LIKE_STEPS)),
         resolution: args.like_res,
@@ -403,7 +428,9 @@ fn like_estimator(args: &Args, target: &Image, ctx: &Ctx) -> anyhow::Result<(Mar
         "--like needs Marigold-IID-Lighting's weights (`pixl models fetch marigold-lighting`, or --models DIR \
          holding them)",
     )?;
-    crate::iid::announce(&m, target.width, target.height, &opts, "target intrinsics")?;
+    if let Some(t) = target {
+        crate::iid::announce(&m, t.width, t.height, &opts, "target intrinsics")?;
+    }
     Ok((MarigoldLighting::new(m, opts, resolved.spec.name)?, resolved))
 }
 
@@ -486,5 +513,194 @@ fn report(
         budget.work.1,
         gb(budget.total())
     ));
+    Ok(())
+}
+
+/// Depth Anything 3 (metric) for photos without a depth map.
+fn load_da3(args: &Args, ctx: &Ctx) -> anyhow::Result<pixl_pipeline::estimators::Da3Depth> {
+    let model = crate::estimators::DepthModel::Da3Metric;
+    let res = pixl_pipeline::estimators::DEFAULT_PROCESS_RES;
+    Ok(
+        crate::estimators::load_depth_model(model, res, "cpu", &args.models, ctx)
+            .context(
+                "reconstructing the scene without --depth (pass --depth FILE with a depth map of the photo, or make \
+             Depth Anything 3's weights available: `pixl models fetch da3-metric`, or --models DIR holding them)",
+            )?
+            .0,
+    )
+}
+
+/// Whether the photos make a batch: several, a folder, a pattern, a list or a manifest.
+fn is_batch(args: &Args) -> bool {
+    args.photo.len() > 1
+        || args.inputs.is_some()
+        || args.manifest.is_some()
+        || args
+            .photo
+            .first()
+            .is_some_and(|p| p.is_dir() || batch::is_pattern(&p.to_string_lossy()))
+}
+
+/// A manifest row's own lighting, if it gives one.
+fn row_setup(row: &ManifestRow, lights: &LightSet) -> anyhow::Result<Option<Setup>> {
+    if let Some(p) = &row.intrinsics {
+        return Ok(Some(Setup::Intrinsics(p.clone())));
+    }
+    if let Some(p) = &row.like {
+        return Ok(Some(Setup::Like(p.clone())));
+    }
+    if let Some(p) = row.preset.as_deref().filter(|p| !PRESETS.contains(p)) {
+        bail!("preset {p:?}: not one of {}", PRESETS.join(", "));
+    }
+    let placed = row
+        .lights
+        .iter()
+        .map(|w| Ok((w.clone(), parse_light_words(w)?)))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    let fixed = row
+        .scene
+        .as_deref()
+        .map(read_lights_file)
+        .transpose()?
+        .unwrap_or_default();
+    let own = LightSet {
+        preset: row.preset.clone(),
+        placed,
+        fixed,
+    };
+    let lights = if own.is_empty() { lights.clone() } else { own };
+    Ok((!lights.is_empty()).then_some(Setup::Lights { lights, depth: None }))
+}
+
+/// Many photos (see --help): the items listed and checked, the models loaded once, then
+/// `pixl_pipeline::batch::run`.
+fn run_batch(args: &Args, ctx: &Ctx) -> anyhow::Result<()> {
+    if args.depth.is_some() {
+        bail!("--depth names one photo's depth map; with many photos give --depth-dir DIR (maps named as the photos)");
+    }
+    if args.out.is_file() || OUTPUT_EXTS.contains(&pixl_core::io::extension(&args.out).as_str()) {
+        bail!("-o {}: with many photos -o is a folder", args.out.display());
+    }
+    let shard = match &args.shard {
+        Some(s) => Shard::parse(s, args.shard_count, &|v| std::env::var(v).ok())?,
+        None => Shard::ALL,
+    };
+    let lights = light_set(args)?;
+    let common = match (&args.intrinsics, &args.like) {
+        (Some(p), _) => Some(Setup::Intrinsics(p.clone())),
+        (None, Some(p)) => Some(Setup::Like(p.clone())),
+        (None, None) => (!lights.is_empty()).then(|| Setup::Lights {
+            lights: lights.clone(),
+            depth: None,
+        }),
+    };
+    let rows: Vec<(batch::Input, Option<ManifestRow>)> = match &args.manifest {
+        Some(m) => batch::read_manifest(m)?
+            .into_iter()
+            .map(|(i, r)| (i, Some(r)))
+            .collect(),
+        None => batch::list_inputs(&args.photo, args.inputs.as_deref())?
+            .into_iter()
+            .map(|i| (i, None))
+            .collect(),
+    };
+    let mut items = Vec::with_capacity(rows.len());
+    for (input, row) in rows {
+        let name = input.path.display().to_string();
+        let own = row
+            .as_ref()
+            .map(|r| row_setup(r, &lights))
+            .transpose()
+            .with_context(|| name.clone())?;
+        let mut setup = own
+            .flatten()
+            .or_else(|| common.clone())
+            .with_context(|| format!("{name}: {NO_LIGHTING}"))?;
+        if let Setup::Lights { depth, .. } = &mut setup {
+            *depth = row
+                .and_then(|r| r.depth)
+                .or_else(|| args.depth_dir.as_deref().and_then(|d| batch::depth_in(d, &input.rel)));
+        }
+        let output = batch::output_for(&args.out, &input.rel, args.format.as_deref());
+        if pixl_core::output::same_file(&output, &input.path) {
+            bail!("{name}: its output would be the photo itself; give another -o or --format");
+        }
+        items.push(Item { input, setup, output });
+    }
+    let needs_depth = items
+        .iter()
+        .any(|i| matches!(i.setup, Setup::Lights { depth: None, .. }));
+    let needs_like = items.iter().any(|i| matches!(i.setup, Setup::Like(_)));
+
+    let device = crate::device::parse_device(&args.device)?;
+    let net = load_network(ctx, args, &device)?;
+    let da3 = needs_depth.then(|| load_da3(args, ctx)).transpose()?;
+    let like = needs_like.then(|| like_estimator(args, None, ctx)).transpose()?;
+    let opts = batch::Options {
+        out_dir: args.out.clone(),
+        shard,
+        force: args.force,
+        max_side: args.max_side,
+        render: pixl_pipeline::render::RenderSettings {
+            spp: args.spp,
+            bounces: args.bounces,
+            seed: args.seed,
+        },
+        max_memory: max_memory(args)?,
+        keep: args.keep.clone(),
+        depth_file: if args.depth_dir.is_some() {
+            depth_file(args)?
+        } else {
+            DepthFile::default()
+        },
+        depth: da3.as_ref().map(|d| d as &dyn pixl_pipeline::depth::DepthEstimator),
+        lighting: like
+            .as_ref()
+            .map(|(m, _)| m as &dyn pixl_pipeline::like::LightingEstimator),
+        focal_px: args.focal,
+        fov_deg: args.fov,
+        settings: format!(
+            "{} {:?} int8={} max_side={} spp={} bounces={} seed={} like_steps={:?} like_res={:?} depth_kind={:?} \
+             depth_range={:?}",
+            net.name,
+            args.dtype,
+            args.int8,
+            args.max_side,
+            args.spp,
+            args.bounces,
+            args.seed,
+            args.like_steps,
+            args.like_res,
+            args.depth_kind,
+            args.depth_range
+        ),
+    };
+    let bars = crate::ctx::Bars::new(ctx);
+    let s = batch::run(&net, &device, items, &opts, &bars)?;
+    if args.json {
+        ctx.print_json(&serde_json::json!({
+            "total": s.total, "done": s.done, "skipped": s.skipped, "failed": s.failed,
+            "seconds": s.seconds, "log": s.log.display().to_string(),
+            "shard": [shard.index, shard.count], "network_loads": Network::loads(),
+        }))?;
+    } else {
+        ctx.say(format!(
+            "{} photos: {} relit, {} already done, {} failed in {:.1} s (log: {})",
+            s.total,
+            s.done,
+            s.skipped,
+            s.failed,
+            s.seconds,
+            s.log.display()
+        ));
+    }
+    if s.failed > 0 {
+        bail!(
+            "{} of {} photos failed; their errors are in {}",
+            s.failed,
+            s.total,
+            s.log.display()
+        );
+    }
     Ok(())
 }

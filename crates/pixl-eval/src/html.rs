@@ -1,8 +1,7 @@
-//! A self-contained HTML report: a plain-language introduction, summary tables, then one row of
+//! A self-contained HTML report (`pixl demo`'s): a plain-language introduction, summary tables, then one row of
 //! captioned image panels per case. Images are inlined as base64 PNG; a click on one opens it at
 //! full size in an overlay (inline CSS/JS, nothing fetched). Each row is a grid that keeps its
 //! panels on one line and scrolls sideways on narrow screens instead of wrapping.
-use anyhow::Result;
 use pixl_core::Image;
 
 pub struct Panel {
@@ -144,7 +143,7 @@ impl Table {
 }
 
 impl Report {
-    pub fn to_html(&self) -> Result<String> {
+    pub fn to_html(&self) -> String {
         let mut h = String::new();
         h.push_str("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\">");
         h.push_str("<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">");
@@ -185,7 +184,7 @@ impl Report {
         }
         h.push_str("<div id=\"zoom\"><img alt=\"full size\"><p></p></div>\n");
         h.push_str(&format!("<script>{SCRIPT}</script>\n</body></html>\n"));
-        Ok(h)
+        h
     }
 }
 
