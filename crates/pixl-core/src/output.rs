@@ -299,6 +299,12 @@ pub(crate) fn commit<R>(path: LivePath, f: impl FnOnce() -> R) -> R {
     r
 }
 
+/// Renames the registered temporary file `tmp` to `dest` and unregisters it in one step (see
+/// [`commit`]): for writers that fill a temporary file themselves (a video encoder).
+pub fn commit_rename(live: LivePath, tmp: &Path, dest: &Path) -> std::io::Result<()> {
+    commit(live, || std::fs::rename(tmp, dest))
+}
+
 /// The registered paths (for tests and diagnostics).
 pub fn live_paths() -> Vec<PathBuf> {
     live().iter().map(|l| l.path.clone()).collect()

@@ -13,6 +13,8 @@
 //! - [`html`]: a self-contained HTML report of image panels and tables (`pixl demo`'s).
 //! - [`run`]: pair lists and [`run_eval`].
 //! - [`report`]: `results.md` / `results.json` / `per_pair.csv`.
+//! - [`temporal`]: flicker of a clip ([`temporal::temporal_noise`]) and of a relit clip relative to
+//!   its source ([`temporal::added_flicker`]).
 //! - [`sheet`]: the contact sheet of the first pairs ([`contact_sheet`]).
 pub mod baselines;
 pub mod error;
@@ -24,6 +26,7 @@ pub mod report;
 pub mod response;
 pub mod run;
 pub mod sheet;
+pub mod temporal;
 pub mod timing;
 
 pub use baselines::{compose_baseline, parse_baselines, Compose, Identity, Method, ModelMethod};

@@ -22,6 +22,8 @@
 //!   stages above to the relit photo, intermediates written only when asked.
 //! - [`batch`]: many photos in one process — inputs from folders, patterns, lists or a
 //!   manifest, a stable shard of them, each a job, resumable through a log.
+//! - [`video`]: a clip or an image sequence relit frame by frame through FFmpeg, streamed; a
+//!   static camera reconstructed once, a moving one per frame.
 //! - [`observe`]: how a caller watches long stages ([`observe::Observer`]).
 //!
 //! Typed errors ([`PipelineError`]); no stage prints: notes and progress go to the observer.
@@ -38,6 +40,7 @@ pub mod photo;
 pub mod reconstruct;
 pub mod relight;
 pub mod render;
+pub mod video;
 
 pub use error::{PipelineError, Result};
 pub use observe::{Observer, Silent, Stage};

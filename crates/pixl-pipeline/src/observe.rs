@@ -18,6 +18,8 @@ pub enum Stage {
     Render,
     /// The network (progress: its blocks).
     Network,
+    /// A video's frames (progress: frames written).
+    Frames,
 }
 
 impl Stage {
@@ -28,6 +30,7 @@ impl Stage {
             Stage::Intrinsics => "intrinsics",
             Stage::Render => "rendering",
             Stage::Network => "network",
+            Stage::Frames => "frames",
         }
     }
 }

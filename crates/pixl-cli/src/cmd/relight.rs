@@ -43,6 +43,7 @@ use pixl_pipeline::estimators::MarigoldLighting;
 use pixl_pipeline::job::{self, DepthSource, Job, LightSet, Lighting, LightingKind, Relit};
 use pixl_pipeline::lights::{parse_light_words, read_lights_file};
 use pixl_pipeline::relight::{gb, Network, DEFAULT_MAX_SIDE};
+use pixl_pipeline::video::{self, CameraMotion, VideoJob};
 use pixl_pipeline::Photo;
 use pixl_render::presets::PRESETS;
 use std::io::IsTerminal;
@@ -214,6 +215,12 @@ pub struct Args {
         value_parser = crate::ctx::at_least_one_usize
     )]
     pub like_steps: Option<usize>,
+    /// A video's camera does not move: reconstruct once from the first frames (default: detected).
+    #[arg(long, conflicts_with = "moving")]
+    pub r#static: bool,
+    /// A video's camera moves: depth and C_T per frame (default: detected).
+    #[arg(long)]
+    pub moving: bool,
     /// Keep every intermediate in this folder (created; must be empty unless --force).
     #[arg(long, value_name = "DIR")]
     pub keep: Option<PathBuf>,
@@ -287,6 +294,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let ctx = &ctx.for_json(args.json);
     let photo = match (args.photo.as_slice(), &args.source) {
         _ if is_batch(&args) => return run_batch(&args, ctx),
+        ([p], _) | ([], Some(p)) if video::is_video(p) => return run_video(&args, p, ctx),
         ([p], _) | ([], Some(p)) => p.clone(),
         _ => bail!("give the photo: `pixl relight photo.jpg --preset NAME -o relit.png` (see --help)"),
     };
@@ -702,5 +710,88 @@ fn run_batch(args: &Args, ctx: &Ctx) -> anyhow::Result<()> {
             s.log.display()
         );
     }
+    Ok(())
+}
+
+/// `pixl relight CLIP --preset … -o OUT.mp4` (or image sequences): `pixl_pipeline::video`.
+fn run_video(args: &Args, input: &Path, ctx: &Ctx) -> anyhow::Result<()> {
+    if args.like.is_some() || args.intrinsics.is_some() || args.keep.is_some() {
+        bail!("--like, --intrinsics and --keep are for photos; relight a clip with --preset, --light or --scene");
+    }
+    if !video::is_video(&args.out) {
+        bail!(
+            "-o {}: a clip is written as a video ({}) or an image sequence (frames/%04d.png)",
+            args.out.display(),
+            video::VIDEO_EXTS.join(", ")
+        );
+    }
+    let dir = pixl_core::output::parent_dir(&args.out);
+    if !dir.is_dir() {
+        bail!("-o {}: the folder {} does not exist", args.out.display(), dir.display());
+    }
+    if pixl_core::output::same_file(&args.out, input) {
+        bail!("-o {}: the output would overwrite the clip", args.out.display());
+    }
+    let lights = light_set(args)?;
+    if lights.is_empty() {
+        bail!("give the new lighting: --preset NAME, --light 'FLAGS' or --scene lights.toml");
+    }
+    let ff = video::Ffmpeg::find()?;
+    video::probe(&ff, input)?;
+    let device = crate::device::parse_device(&args.device)?;
+    let net = load_network(ctx, args, &device)?;
+    let da3;
+    let depth = match &args.depth {
+        Some(path) => DepthSource::File {
+            path: path.clone(),
+            how: depth_file(args)?,
+        },
+        None => {
+            da3 = load_da3(args, ctx)?;
+            DepthSource::Estimate(&da3)
+        }
+    };
+    let camera = match (args.r#static, args.moving) {
+        (true, _) => CameraMotion::Static,
+        (_, true) => CameraMotion::Moving,
+        _ => CameraMotion::Auto,
+    };
+    let job = VideoJob {
+        input: input.to_owned(),
+        output: args.out.clone(),
+        lights: &lights,
+        depth,
+        camera,
+        max_side: args.max_side,
+        render: pixl_pipeline::render::RenderSettings {
+            spp: args.spp,
+            bounces: args.bounces,
+            seed: args.seed,
+        },
+        max_memory: max_memory(args)?,
+        focal_px: args.focal,
+        fov_deg: args.fov,
+    };
+    let start = std::time::Instant::now();
+    let bars = crate::ctx::Bars::new(ctx);
+    let v = video::relight_video(&ff, &net, job, &device, &bars)?;
+    let secs = start.elapsed().as_secs_f64();
+    if args.json {
+        return ctx.print_json(&serde_json::json!({
+            "output": args.out.display().to_string(), "frames": v.frames, "width": v.info.width,
+            "height": v.info.height, "fps": v.info.fps(), "audio": v.info.audio, "static_camera": v.static_camera,
+            "working_width": v.work.0, "working_height": v.work.1, "seconds": secs, "weights": net.name,
+        }));
+    }
+    ctx.say(format!(
+        "wrote {} ({} frames of {}x{} in {secs:.1} s, {:.2} frames/s; network at {}x{})",
+        args.out.display(),
+        v.frames,
+        v.info.width,
+        v.info.height,
+        v.frames as f64 / secs.max(1e-9),
+        v.work.0,
+        v.work.1
+    ));
     Ok(())
 }
