@@ -77,6 +77,31 @@ pub fn sequence_frame(pattern: &Path, index: usize) -> Option<PathBuf> {
     Some(pattern.with_file_name(format!("{prefix}{index:0width$}{suffix}")))
 }
 
+/// Refuses an output that is not a video or a sequence pattern, whose folder is missing, or that
+/// would overwrite `input`.
+pub fn check_output(output: &Path, input: &Path) -> Result<()> {
+    let name = output.display();
+    if !is_video(output) {
+        return Err(PipelineError::input(format!(
+            "-o {name}: a clip is written as a video ({}) or an image sequence (frames/%04d.png)",
+            VIDEO_EXTS.join(", ")
+        )));
+    }
+    let dir = pixl_core::output::parent_dir(output);
+    if !dir.is_dir() {
+        return Err(PipelineError::input(format!(
+            "-o {name}: the folder {} does not exist",
+            dir.display()
+        )));
+    }
+    if pixl_core::output::same_file(output, input) || output == input {
+        return Err(PipelineError::input(format!(
+            "-o {name}: the output would overwrite the clip"
+        )));
+    }
+    Ok(())
+}
+
 /// The `ffmpeg` and `ffprobe` programs.
 #[derive(Clone, Debug)]
 pub struct Ffmpeg {
@@ -568,6 +593,21 @@ pub fn align_depth(depth: &DepthMap, reference: &DepthMap) -> (DepthMap, (f64, f
     (out, (a, b))
 }
 
+/// A clip's reference frame — the per-pixel median of its first [`REFERENCE_FRAMES`] frames, what
+/// a static camera's scene is reconstructed from — and its probe.
+pub fn reference_frame(ff: &Ffmpeg, path: &Path) -> Result<(Image, VideoInfo)> {
+    let info = probe(ff, path)?;
+    let mut decoder = Decoder::open(ff, path, &info)?;
+    let mut held = Vec::new();
+    while held.len() < REFERENCE_FRAMES {
+        match decoder.next_frame()? {
+            Some(f) => held.push(f),
+            None => break,
+        }
+    }
+    Ok((median_frame(&held)?, info))
+}
+
 /// Whether the camera moves.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CameraMotion {
@@ -679,79 +719,140 @@ pub fn relight_video(
         est.estimate(&photo.srgb(), photo.focal.px)?.to_metric(photo.size())
     };
 
-    let mut sink = Sink::create(
-        ff,
-        &job.output,
-        &info,
-        (!is_sequence(&job.input)).then_some(job.input.as_path()),
-    )?;
-    observer.begin(Stage::Frames, info.frames.unwrap_or(0));
-    let frames = std::cell::Cell::new(0u64);
-    let emit = |frame: Image, ct_work: &[f32], sink: &mut Sink| -> Result<()> {
-        let relit = relight(net, frame, ct_work, work, device, &Silent)?;
-        sink.write(&relit)?;
-        frames.set(frames.get() + 1);
-        observer.progress(Stage::Frames, frames.get(), info.frames.unwrap_or(0));
-        Ok(())
-    };
-    let result = (|| -> Result<()> {
-        if static_camera {
-            let reference = frame_photo(median_frame(&held)?);
-            let depth = match &job.depth {
-                DepthSource::File { path, how } => crate::depth::read_depth_file(path, how, size)?,
-                DepthSource::Estimate(est) => estimate(&reference, *est)?,
-                DepthSource::Given(map) => map.clone(),
-            };
-            let (ct_work, _) = lit(&reference, &depth, None).map_err(|e| e.context("the reference frame"))?;
-            for f in held.drain(..) {
-                emit(f, &ct_work, &mut sink)?;
-            }
-            while let Some(f) = decoder.next_frame()? {
-                emit(f, &ct_work, &mut sink)?;
-            }
-        } else {
-            let DepthSource::Estimate(est) = &job.depth else {
-                return Err(PipelineError::input(
-                    "a moving camera needs the depth of every frame: use the depth estimator (no --depth), or --static",
-                ));
-            };
-            let (mut lights, mut previous) = (None::<Vec<pixl_render::Light>>, None::<DepthMap>);
-            let mut pending = held.drain(..).collect::<std::collections::VecDeque<_>>();
-            loop {
-                let f = match pending.pop_front() {
-                    Some(f) => f,
-                    None => match decoder.next_frame()? {
-                        Some(f) => f,
-                        None => break,
-                    },
-                };
-                let photo = frame_photo(f);
+    let frames = if static_camera {
+        let reference = frame_photo(median_frame(&held)?);
+        let depth = match &job.depth {
+            DepthSource::File { path, how } => crate::depth::read_depth_file(path, how, size)?,
+            DepthSource::Estimate(est) => estimate(&reference, *est)?,
+            DepthSource::Given(map) => map.clone(),
+        };
+        let (ct_work, _) = lit(&reference, &depth, None).map_err(|e| e.context("the reference frame"))?;
+        stream(
+            ff,
+            &info,
+            &job.input,
+            &job.output,
+            held,
+            &mut decoder,
+            observer,
+            |frame, _| relight(net, frame, &ct_work, work, device, &Silent),
+        )?
+    } else {
+        let DepthSource::Estimate(est) = &job.depth else {
+            return Err(PipelineError::input(
+                "a moving camera needs the depth of every frame: use the depth estimator (no --depth), or --static",
+            ));
+        };
+        let (mut lights, mut previous) = (None::<Vec<pixl_render::Light>>, None::<DepthMap>);
+        stream(
+            ff,
+            &info,
+            &job.input,
+            &job.output,
+            held,
+            &mut decoder,
+            observer,
+            |frame, i| {
+                let photo = frame_photo(frame);
                 let mut depth = estimate(&photo, *est)?;
                 if let Some(prev) = &previous {
                     depth = align_depth(&depth, prev).0;
                 }
-                let (ct_work, placed) = lit(&photo, &depth, lights.as_deref())
-                    .map_err(|e| e.context(format!("frame {}", frames.get() + 1)))?;
+                let (ct_work, placed) =
+                    lit(&photo, &depth, lights.as_deref()).map_err(|e| e.context(format!("frame {}", i + 1)))?;
                 lights.get_or_insert(placed);
                 previous = Some(depth);
-                emit(photo.image, &ct_work, &mut sink)?;
-            }
-        }
-        Ok(())
-    })();
-    observer.end(Stage::Frames);
-    result?;
-    let frames = frames.get();
-    if frames == 0 {
-        return Err(PipelineError::input(format!("{}: no frames", job.input.display())));
-    }
-    sink.finish()?;
+                relight(net, photo.image, &ct_work, work, device, &Silent)
+            },
+        )?
+    };
     Ok(VideoOutcome {
         info,
         frames,
         static_camera,
         work,
     })
+}
+
+/// Streams `held` and then the rest of `decoder` through `relight` (a frame and its index → the
+/// relit frame) into `output`, with progress; the output is complete only if every frame was.
+#[allow(clippy::too_many_arguments)]
+fn stream(
+    ff: &Ffmpeg,
+    info: &VideoInfo,
+    input: &Path,
+    output: &Path,
+    held: Vec<Image>,
+    decoder: &mut Decoder,
+    observer: &dyn Observer,
+    mut relight: impl FnMut(Image, u64) -> Result<Image>,
+) -> Result<u64> {
+    let audio = (!is_sequence(input)).then_some(input);
+    let mut sink = Sink::create(ff, output, info, audio)?;
+    let total = info.frames.unwrap_or(0);
+    observer.begin(Stage::Frames, total);
+    let mut frames = 0u64;
+    let mut held = held.into_iter();
+    let result = (|| -> Result<()> {
+        loop {
+            let frame = match held.next() {
+                Some(f) => f,
+                None => match decoder.next_frame()? {
+                    Some(f) => f,
+                    None => return Ok(()),
+                },
+            };
+            let relit = relight(frame, frames)?;
+            sink.write(&relit)?;
+            frames += 1;
+            observer.progress(Stage::Frames, frames, total);
+        }
+    })();
+    observer.end(Stage::Frames);
+    result?;
+    if frames == 0 {
+        return Err(PipelineError::input(format!("{}: no frames", input.display())));
+    }
+    sink.finish()?;
+    Ok(frames)
+}
+
+/// Relights every frame of `input` with `model` under one `C_T` (planar, at the working size
+/// `work`) into `output` — a static camera's clip relit under a `C_T` made elsewhere (the
+/// studio's). Returns the frame count and the clip's probe.
+#[allow(clippy::too_many_arguments)]
+pub fn relight_frames(
+    ff: &Ffmpeg,
+    model: &pixl_model::PixlRelight,
+    input: &Path,
+    output: &Path,
+    ct_work: &[f32],
+    work: (usize, usize),
+    device: &Device,
+    observer: &dyn Observer,
+) -> Result<(u64, VideoInfo)> {
+    let info = probe(ff, input)?;
+    let mut decoder = Decoder::open(ff, input, &info)?;
+    let frames = stream(
+        ff,
+        &info,
+        input,
+        output,
+        Vec::new(),
+        &mut decoder,
+        observer,
+        |frame, _| {
+            Ok(pixl_model::fullres::relight_full(
+                model,
+                frame,
+                ct_work,
+                work,
+                device,
+                &mut |_, _, _| {},
+            )?)
+        },
+    )?;
+    Ok((frames, info))
 }
 
 #[cfg(test)]

@@ -100,6 +100,7 @@ function setState(s) {
   $("banner").hidden = !(geo && geo.fallback) && !(s.notes && s.notes.length);
   $("banner").textContent = [geo && geo.fallback ? geo.label : "", ...(s.notes || [])].filter(Boolean).join(" ");
   $("drop-hint").hidden = !!s.photo;
+  $("export-video").hidden = !s.video;
   $("undo").disabled = !s.can_undo;
   $("redo").disabled = !s.can_redo;
 
@@ -412,7 +413,7 @@ $("save").onclick = () => run(async () => {
   $("status").textContent = "saved " + res.path;
   $("status").dataset.saved = res.path;
 });
-for (const [id, what] of [["export-relit", "relit"], ["export-ct", "ct"], ["export-blender", "blender"]]) {
+for (const [id, what] of [["export-relit", "relit"], ["export-ct", "ct"], ["export-blender", "blender"], ["export-video", "video"]]) {
   $(id).onclick = () => run(async () => {
     $("status").textContent = "exporting " + what + " (waiting for the final render) …";
     const res = await api("POST", "/api/export?what=" + what);

@@ -348,8 +348,12 @@ async fn export(
     State(s): State<Studio>,
     q: std::result::Result<Query<ExportQuery>, axum::extract::rejection::QueryRejection>,
 ) -> Result<Json<Value>> {
-    let Query(q) =
-        q.map_err(|e| StudioError::BadRequest(format!("{} (give ?what=relit, ct, blender or scene)", e.body_text())))?;
+    let Query(q) = q.map_err(|e| {
+        StudioError::BadRequest(format!(
+            "{} (give ?what=relit, ct, blender, scene or video)",
+            e.body_text()
+        ))
+    })?;
     let timeout = Duration::from_millis(q.timeout_ms.unwrap_or(60_000)).min(MAX_WAIT);
     let s2 = s.clone();
     let paths = blocking(move || s2.export(&q.what, timeout)).await?;

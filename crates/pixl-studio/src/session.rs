@@ -189,6 +189,9 @@ struct State {
     notes: Vec<String>,
     like: Option<Liked>,
     like_count: u64,
+    /// The clip whose reference frame is the photo (lights are authored on it; "export video"
+    /// relights every frame).
+    video: Option<PathBuf>,
 }
 
 pub(crate) struct Shared {
@@ -297,6 +300,7 @@ impl Studio {
                 notes: Vec::new(),
                 like: None,
                 like_count: 0,
+                video: None,
             }),
             wake: Condvar::new(),
             generation: AtomicU64::new(0),
@@ -340,6 +344,60 @@ impl Studio {
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default();
         self.load_photo_bytes(&bytes, &name)
+    }
+
+    /// Opens a clip (any container FFmpeg reads, or an image-sequence pattern): its reference
+    /// frame — the median of its first frames, `pixl_pipeline::video::reference_frame` — becomes
+    /// the photo the lights are placed on; [`Studio::export_video`] relights every frame.
+    pub fn load_video_file(&self, path: &Path) -> Result<()> {
+        let ff = pixl_pipeline::video::Ffmpeg::find()?;
+        let (frame, _) = pixl_pipeline::video::reference_frame(&ff, path)?;
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        self.check_pixels(&name, frame.width, frame.height)?;
+        self.install_photo(frame, &name)?;
+        self.lock().video = Some(path.to_owned());
+        Ok(())
+    }
+
+    /// Relights every frame of the loaded clip under the current lights' final `C_T` (a static
+    /// camera: `pixl_pipeline::video::relight_frames`) into `<clip stem>-relit.mp4` (a sequence:
+    /// `<stem>-relit/%05d.png`) in the output folder; waits up to `timeout` for the final render.
+    /// Returns the file and the frame count.
+    pub fn export_video(&self, timeout: Duration) -> Result<(PathBuf, u64)> {
+        let clip = self
+            .lock()
+            .video
+            .clone()
+            .ok_or_else(|| StudioError::NotFound("no clip is loaded (open a video to export one)".into()))?;
+        let (out, _) = self.final_output(timeout)?;
+        let dir = self.out_dir()?;
+        let stem = clip
+            .file_stem()
+            .map(|s| s.to_string_lossy().replace('%', ""))
+            .unwrap_or_else(|| "clip".into());
+        let dest = if pixl_pipeline::video::is_sequence(&clip) {
+            let d = dir.join(format!("{stem}-relit"));
+            std::fs::create_dir_all(&d).map_err(|e| StudioError::io(&d, e))?;
+            d.join("%05d.png")
+        } else {
+            dir.join(format!("{stem}-relit.mp4"))
+        };
+        let ff = pixl_pipeline::video::Ffmpeg::find()?;
+        let work = (out.ct.width(), out.ct.height());
+        let (frames, _) = pixl_pipeline::video::relight_frames(
+            &ff,
+            &self.shared.model,
+            &clip,
+            &dest,
+            &out.ct.to_chw(),
+            work,
+            &candle_core::Device::Cpu,
+            &pixl_pipeline::Silent,
+        )?;
+        Ok((dest, frames))
     }
 
     fn check_upload(&self, len: usize) -> Result<()> {
@@ -561,6 +619,7 @@ impl Studio {
             if let Some(p) = photo {
                 st.photo = Some(Arc::new(p));
                 st.like = None;
+                st.video = None;
             }
             if let Some(mut ls) = lights {
                 st.undo.clear();
@@ -909,6 +968,7 @@ impl Studio {
             "presets": pixl_render::presets::PRESETS,
             "weights": self.shared.model_name,
             "like": st.like.as_ref().map(Liked::json),
+            "video": st.video.as_ref().map(|p| p.display().to_string()),
             "can_like": self.shared.config.lighting.is_some(),
             "out_dir": self.shared.config.out_dir.display().to_string(),
             "stages": stages,
@@ -1066,7 +1126,8 @@ impl Studio {
 
     /// Writes `what` to the output folder: `relit` (`relit.png`, the photo's full size, 16-bit),
     /// `ct` (`CT.exr`, at the working size), `blender` (`scene_blender.py` and its data folder,
-    /// `pixl_render::blender`), `scene` ([`Studio::save_scene`]). Waits up to `timeout` for the
+    /// `pixl_render::blender`), `scene` ([`Studio::save_scene`]), `video` (with a clip open:
+    /// [`Studio::export_video`]). Waits up to `timeout` for the
     /// final render when needed.
     pub fn export(&self, what: &str, timeout: Duration) -> Result<Vec<PathBuf>> {
         let dir = self.out_dir()?;
@@ -1090,8 +1151,9 @@ impl Studio {
                 Ok(vec![e.script, e.data_dir])
             }
             "scene" => Ok(vec![self.save_scene()?]),
+            "video" => Ok(vec![self.export_video(timeout)?.0]),
             other => Err(StudioError::BadRequest(format!(
-                "cannot export {other:?}: give relit, ct, blender or scene"
+                "cannot export {other:?}: give relit, ct, blender, scene or video"
             ))),
         }
     }

@@ -718,20 +718,7 @@ fn run_video(args: &Args, input: &Path, ctx: &Ctx) -> anyhow::Result<()> {
     if args.like.is_some() || args.intrinsics.is_some() || args.keep.is_some() {
         bail!("--like, --intrinsics and --keep are for photos; relight a clip with --preset, --light or --scene");
     }
-    if !video::is_video(&args.out) {
-        bail!(
-            "-o {}: a clip is written as a video ({}) or an image sequence (frames/%04d.png)",
-            args.out.display(),
-            video::VIDEO_EXTS.join(", ")
-        );
-    }
-    let dir = pixl_core::output::parent_dir(&args.out);
-    if !dir.is_dir() {
-        bail!("-o {}: the folder {} does not exist", args.out.display(), dir.display());
-    }
-    if pixl_core::output::same_file(&args.out, input) {
-        bail!("-o {}: the output would overwrite the clip", args.out.display());
-    }
+    video::check_output(&args.out, input)?;
     let lights = light_set(args)?;
     if lights.is_empty() {
         bail!("give the new lighting: --preset NAME, --light 'FLAGS' or --scene lights.toml");

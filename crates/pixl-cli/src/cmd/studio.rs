@@ -20,7 +20,8 @@ weights on disk (`pixl models fetch marigold-lighting`, licence OpenRAIL++-M; ab
 first use). The JSON API behind the page is documented in crates/pixl-studio/README.md."
 )]
 pub struct Args {
-    /// A photo (.png, .jpg) or a scene file (.toml, .json) to open; or drop one on the page.
+    /// A photo (.png, .jpg), a video (.mp4, .mov, … or frames/%04d.png: lights are placed on its
+    /// first frames, "Export video" relights every frame) or a scene file (.toml, .json) to open.
     pub input: Option<PathBuf>,
     /// A depth map of the photo (.exr, 16-bit .png, .npy).
     #[arg(long)]
@@ -205,9 +206,13 @@ pub fn run(args: Args, ctx: &Ctx) -> Result<()> {
                 .open_scene_file(input)
                 .with_context(|| format!("opening {}", input.display()))?;
         } else {
-            studio
-                .load_photo_file(input)
-                .with_context(|| format!("opening {}", input.display()))?;
+            let video = pixl_pipeline::video::is_video(input);
+            if video {
+                studio.load_video_file(input)
+            } else {
+                studio.load_photo_file(input)
+            }
+            .with_context(|| format!("opening {}", input.display()))?;
             if let Some(d) = &args.depth {
                 let bytes = std::fs::read(d).with_context(|| format!("reading {}", d.display()))?;
                 let name = d
