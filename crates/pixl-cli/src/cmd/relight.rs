@@ -334,11 +334,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
         photo,
         lighting,
         max_side: args.max_side,
-        render: pixl_pipeline::render::RenderSettings {
-            spp: args.spp,
-            bounces: args.bounces,
-            seed: args.seed,
-        },
+        render: render_settings(&args),
         max_memory,
         keep: args.keep.clone(),
     };
@@ -649,11 +645,7 @@ fn run_batch(args: &Args, ctx: &Ctx) -> anyhow::Result<()> {
         shard,
         force: args.force,
         max_side: args.max_side,
-        render: pixl_pipeline::render::RenderSettings {
-            spp: args.spp,
-            bounces: args.bounces,
-            seed: args.seed,
-        },
+        render: render_settings(args),
         max_memory: max_memory(args)?,
         keep: args.keep.clone(),
         depth_file: if args.depth_dir.is_some() {
@@ -750,11 +742,7 @@ fn run_video(args: &Args, input: &Path, ctx: &Ctx) -> anyhow::Result<()> {
         depth,
         camera,
         max_side: args.max_side,
-        render: pixl_pipeline::render::RenderSettings {
-            spp: args.spp,
-            bounces: args.bounces,
-            seed: args.seed,
-        },
+        render: render_settings(args),
         max_memory: max_memory(args)?,
         focal_px: args.focal,
         fov_deg: args.fov,
@@ -781,4 +769,13 @@ fn run_video(args: &Args, input: &Path, ctx: &Ctx) -> anyhow::Result<()> {
         v.work.1
     ));
     Ok(())
+}
+
+/// `--spp`, `--bounces`, `--seed`.
+fn render_settings(args: &Args) -> pixl_pipeline::render::RenderSettings {
+    pixl_pipeline::render::RenderSettings {
+        spp: args.spp,
+        bounces: args.bounces,
+        seed: args.seed,
+    }
 }
