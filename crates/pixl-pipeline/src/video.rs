@@ -347,16 +347,19 @@ impl Sink {
             Sink::Video(e) => e.finish(),
             Sink::Frames(mut f) => {
                 f.finished = true;
+                // Unregistered, kept.
+                f.written.clear();
                 Ok(())
             }
         }
     }
 }
 
-/// Frames written as numbered PNG/JPEG/EXR files; removed again unless finished.
+/// Frames written as numbered PNG/JPEG/EXR files; removed again unless finished (each is
+/// registered for removal on interruption until then).
 pub struct FrameSink {
     pattern: PathBuf,
-    written: Vec<PathBuf>,
+    written: Vec<(PathBuf, pixl_core::output::LivePath)>,
     finished: bool,
 }
 
@@ -365,8 +368,9 @@ impl FrameSink {
         let index = self.written.len() + 1;
         let path = sequence_frame(&self.pattern, index)
             .ok_or_else(|| PipelineError::input(format!("{}: not a sequence pattern", self.pattern.display())))?;
+        let live = pixl_core::output::register(&path, false);
         pixl_core::io::write_image(&path, frame)?;
-        self.written.push(path);
+        self.written.push((path, live));
         Ok(())
     }
 }
@@ -374,7 +378,7 @@ impl FrameSink {
 impl Drop for FrameSink {
     fn drop(&mut self) {
         if !self.finished {
-            for p in &self.written {
+            for (p, _) in &self.written {
                 let _ = std::fs::remove_file(p);
             }
         }
