@@ -41,9 +41,12 @@ pub struct TextEncoder {
 }
 
 impl TextEncoder {
-    /// `vb` at the checkpoint root (tensors `text_model.*`).
+    /// `vb` at the checkpoint root: tensors `text_model.*` (how transformers' `CLIPTextModel`
+    /// saves them), or the same names without the `text_model.` prefix (how some exports save
+    /// the inner model).
     pub fn new(cfg: TextConfig, vb: VarBuilder) -> candle_core::Result<Self> {
-        let t = vb.pp("text_model");
+        let prefixed = vb.contains_tensor("text_model.embeddings.token_embedding.weight");
+        let t = if prefixed { vb.pp("text_model") } else { vb };
         let e = t.pp("embeddings");
         let h = cfg.hidden_size;
         let token = e.get((cfg.vocab_size, h), "token_embedding.weight")?;
@@ -188,5 +191,39 @@ pub fn write_cache(text_dir: &Path, emb: &Tensor) {
     if let Err(e) = res {
         let _ = std::fs::remove_file(&tmp);
         tracing::debug!("not caching the empty-prompt embedding at {}: {e}", p.display());
+    }
+}
+
+#[cfg(test)]
+mod prefix_tests {
+    use super::*;
+
+    /// The appearance fixture's text encoder, and the same tensors saved without the
+    /// `text_model.` prefix, give the same embedding bit for bit.
+    #[test]
+    fn names_with_or_without_the_text_model_prefix_load_alike() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/marigold/appearance/text_encoder");
+        let cfg = TextConfig::from_json(&std::fs::read_to_string(dir.join("config.json")).unwrap()).unwrap();
+        let tensors = candle_core::safetensors::load(dir.join("model.safetensors"), &Device::Cpu).unwrap();
+        assert!(tensors.keys().all(|k| k.starts_with("text_model.")));
+        let stripped: std::collections::HashMap<String, Tensor> = tensors
+            .iter()
+            .map(|(k, v)| (k.trim_start_matches("text_model.").to_string(), v.clone()))
+            .collect();
+        let ids = [0u32, 1];
+        let embed = |t: std::collections::HashMap<String, Tensor>| {
+            let vb = VarBuilder::from_tensors(t, DType::F32, &Device::Cpu);
+            let enc = TextEncoder::new(cfg.clone(), vb).unwrap();
+            enc.forward(&ids)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap()
+        };
+        let a = embed(tensors);
+        let b = embed(stripped);
+        assert_eq!(a, b);
+        assert!(a.iter().any(|v| *v != 0.0));
     }
 }
