@@ -25,6 +25,10 @@ pub struct IidArgs {
     /// Seed of the initial noise (the same seed gives the same maps).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Also write each map's uncertainty, the ensemble's spread as diffusers computes it (median
+    /// absolute deviation), as `uncertainty-<map>.exr` beside the output (needs --ensemble ≥ 2).
+    #[arg(long)]
+    pub uncertainty: bool,
 }
 
 impl Default for IidArgs {
@@ -34,6 +38,7 @@ impl Default for IidArgs {
             steps: None,
             ensemble: 1,
             seed: 0,
+            uncertainty: false,
         }
     }
 }
@@ -45,6 +50,7 @@ impl IidArgs {
             ensemble: self.ensemble,
             resolution: self.res,
             seed: self.seed,
+            uncertainty: self.uncertainty,
             ..Default::default()
         }
     }
@@ -103,6 +109,14 @@ pub fn run(m: &Marigold, photo: &Image, args: &IidArgs, label: &str, ctx: &Ctx) 
     })?;
     pb.finish_and_clear();
     Ok(pred)
+}
+
+/// Writes each map's uncertainty (if computed) as `<prefix>uncertainty-<map>.exr`.
+pub fn write_uncertainty(pred: &IidPrediction, prefix: &str) -> anyhow::Result<()> {
+    for (t, img) in &pred.uncertainty {
+        pixl_core::io::write_image(format!("{prefix}uncertainty-{}.exr", t.name).as_ref(), img)?;
+    }
+    Ok(())
 }
 
 /// Logs how long decomposing a `width × height` photo with `opts` will take (measured

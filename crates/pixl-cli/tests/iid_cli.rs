@@ -246,3 +246,26 @@ fn prepare_targets_writes_resumes_and_feeds_the_loader() {
         }
     }
 }
+
+/// `--uncertainty` with an ensemble of 3 writes one map per target beside the C_T, at the photo's
+/// size, non-negative and not all zero (the members differ by their noise); without an ensemble it
+/// is refused before any output.
+#[test]
+fn uncertainty_of_an_ensemble_is_written_beside_the_output() {
+    let t = common::tempdir();
+    let m = models(t.path(), "lighting", "marigold-lighting");
+    let p = t.path().join("p.png");
+    photo(&p, 30, 20, 1);
+    let out = t.path().join("p.intrinsics.exr");
+    let flags = ["--res", "32", "--steps", "1", "--ensemble", "3", "--uncertainty"];
+    estimate(t.path(), "lighting", &p, &out, &flags, &m).ok();
+    for target in ["albedo", "shading", "residual"] {
+        let f = t.path().join(format!("p.intrinsics.uncertainty-{target}.exr"));
+        let u = pixl_core::io::read_image(&f).unwrap();
+        assert_eq!((u.width, u.height), (30, 20), "{target}");
+        assert!(u.data.iter().all(|v| *v >= 0.0) && u.data.iter().any(|v| *v > 0.0), "{target}");
+    }
+    let out2 = t.path().join("q.exr");
+    estimate(t.path(), "lighting", &p, &out2, &["--res", "32", "--uncertainty"], &m).fails(&["ensemble"]);
+    assert!(!out2.exists());
+}

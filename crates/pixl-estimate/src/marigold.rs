@@ -96,6 +96,8 @@ pub struct MarigoldOptions {
     pub reduction: Reduction,
     /// Seed of the initial noise.
     pub seed: u64,
+    /// Also the members' spread per pixel ([`uncertainty`]; needs an ensemble of 2 or more).
+    pub uncertainty: bool,
 }
 
 impl Default for MarigoldOptions {
@@ -106,6 +108,7 @@ impl Default for MarigoldOptions {
             resolution: None,
             reduction: Reduction::Median,
             seed: 0,
+            uncertainty: false,
         }
     }
 }
@@ -126,6 +129,8 @@ pub struct IidPrediction {
     pub processed_size: (usize, usize),
     pub steps: usize,
     pub ensemble: usize,
+    /// With [`MarigoldOptions::uncertainty`]: per target, the members' spread at the photo's size.
+    pub uncertainty: Vec<(Target, Image)>,
 }
 
 impl IidPrediction {
@@ -377,6 +382,12 @@ impl Marigold {
         if opts.ensemble == 0 {
             return Err(EstimateError::Input("the ensemble size must be at least 1".into()));
         }
+        if opts.uncertainty && opts.ensemble < 2 {
+            return Err(EstimateError::Input(
+                "the uncertainty is the spread of an ensemble: give an ensemble of 2 or more (3 or more to be useful)"
+                    .into(),
+            ));
+        }
         Ok((steps, res))
     }
 
@@ -535,22 +546,32 @@ impl Marigold {
             }
             members.push(maps);
         }
-        let mut out = Vec::with_capacity(t);
+        let (w, h) = (photo.width, photo.height);
+        // Planar (3, nh, nw) → the photo's size, as diffusers resizes prediction and uncertainty.
+        let to_photo = |v: Vec<f32>| -> Result<Image, EstimateError> {
+            let small = Tensor::from_vec(v, (1, 3, nh, nw), &Device::Cpu)?;
+            let full = resize::bilinear_half_pixel(&small, h, w)?;
+            let planar = full.flatten_all()?.to_vec1::<f32>()?;
+            Ok(Image::from_fn(w, h, 3, |x, y, c| planar[(c * h + y) * w + x]))
+        };
+        let (mut out, mut spread) = (Vec::with_capacity(t), Vec::new());
         for (k, target) in self.pipeline.targets.iter().enumerate() {
             let planes: Vec<&[f32]> = members.iter().map(|m| m[k].as_slice()).collect();
             let reduced = reduce(&planes, opts.reduction);
-            let small = Tensor::from_vec(reduced, (1, 3, nh, nw), &Device::Cpu)?;
-            let full = resize::bilinear_half_pixel(&small, photo.height, photo.width)?;
-            let planar = full.flatten_all()?.to_vec1::<f32>()?;
-            let (w, h) = (photo.width, photo.height);
-            let img = Image::from_fn(w, h, 3, |x, y, c| planar[(c * h + y) * w + x]);
-            out.push((target.clone(), img));
+            if opts.uncertainty {
+                spread.push((
+                    target.clone(),
+                    to_photo(uncertainty(&planes, &reduced, opts.reduction))?,
+                ));
+            }
+            out.push((target.clone(), to_photo(reduced)?));
         }
         Ok(IidPrediction {
             maps: out,
             processed_size: (nw, nh),
             steps,
             ensemble: opts.ensemble,
+            uncertainty: spread,
         })
     }
 }
@@ -569,6 +590,32 @@ fn resized_size(w: usize, h: usize, res: usize) -> Result<(usize, usize), Estima
         )));
     }
     Ok((nh, nw))
+}
+
+/// The members' spread per element, as diffusers' `ensemble_intrinsics` computes it: for the
+/// median, the median (lower, as `torch.median`) of `|member − reduced|`; for the mean, the
+/// standard deviation with Bessel's correction (`torch.std`). `reduced` is [`reduce`]'s output.
+pub fn uncertainty(members: &[&[f32]], reduced: &[f32], how: Reduction) -> Vec<f32> {
+    let n = members.len();
+    let mut buf = vec![0.0f32; n];
+    (0..reduced.len())
+        .map(|i| {
+            for (b, m) in buf.iter_mut().zip(members) {
+                *b = m[i] - reduced[i];
+            }
+            match how {
+                Reduction::Mean if n > 1 => {
+                    (buf.iter().map(|d| (*d as f64).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt() as f32
+                }
+                Reduction::Mean => 0.0,
+                Reduction::Median => {
+                    buf.iter_mut().for_each(|d| *d = d.abs());
+                    buf.sort_by(f32::total_cmp);
+                    buf[(n - 1) / 2]
+                }
+            }
+        })
+        .collect()
 }
 
 /// Per-element median (lower median for an even count, as `torch.median`) or mean.
@@ -598,6 +645,25 @@ pub fn reduce(members: &[&[f32]], how: Reduction) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn uncertainty_is_the_median_absolute_deviation_or_the_sample_std_as_diffusers_computes_it() {
+        let (a, b, c) = ([0.1f32, 0.5], [0.4f32, 0.5], [0.2f32, 0.9]);
+        let members: Vec<&[f32]> = vec![&a, &b, &c];
+        // Median: element 0: members 0.1, 0.4, 0.2 → median 0.2, deviations 0.1, 0.2, 0 → median 0.1.
+        let med = reduce(&members, Reduction::Median);
+        let u = uncertainty(&members, &med, Reduction::Median);
+        assert!(
+            (med[0] - 0.2).abs() < 1e-7 && (u[0] - 0.1).abs() < 1e-6,
+            "{med:?} {u:?}"
+        );
+        // Element 1: 0.5, 0.5, 0.9 → median 0.5, deviations 0, 0, 0.4 → 0.
+        assert_eq!(u[1], 0.0);
+        // Mean: element 1: mean 0.6333, sample std sqrt(((−0.1333)²·2 + 0.2667²) / 2) = 0.23094.
+        let mean = reduce(&members, Reduction::Mean);
+        let s = uncertainty(&members, &mean, Reduction::Mean);
+        assert!((s[1] - 0.230_940_1).abs() < 1e-5, "{s:?}");
+    }
 
     #[test]
     fn median_is_the_lower_one_for_even_counts() {

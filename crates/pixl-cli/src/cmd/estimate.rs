@@ -162,6 +162,7 @@ fn materials(args: MaterialsArgs, ctx: &Ctx) -> anyhow::Result<()> {
     pixl_core::io::write_png(&out("albedo.png"), srgb, pixl_core::io::PngDepth::Eight)?;
     pixl_core::io::write_image(&out("roughness.exr"), &mats.roughness)?;
     pixl_core::io::write_image(&out("metallic.exr"), &mats.metallic)?;
+    iid::write_uncertainty(&pred, &format!("{}/", args.out.display()))?;
     created.keep();
     let (w, h) = (photo.width, photo.height);
     if args.json {
@@ -207,6 +208,7 @@ fn lighting(args: LightingArgs, ctx: &Ctx) -> anyhow::Result<()> {
     let pred = iid::run(&m, &photo, &args.iid, "lighting", ctx)?;
     let (ct, tau) = ct_from_lighting(&pred)?;
     pixl_intrinsics::ct::write_ct(&args.out, &ct)?;
+    iid::write_uncertainty(&pred, &format!("{}.", args.out.with_extension("").display()))?;
     let [a, s, r] = ct.groups();
     if args.json {
         return ctx.print_json(&serde_json::json!({
