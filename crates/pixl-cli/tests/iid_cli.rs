@@ -263,7 +263,10 @@ fn uncertainty_of_an_ensemble_is_written_beside_the_output() {
         let f = t.path().join(format!("p.intrinsics.uncertainty-{target}.exr"));
         let u = pixl_core::io::read_image(&f).unwrap();
         assert_eq!((u.width, u.height), (30, 20), "{target}");
-        assert!(u.data.iter().all(|v| *v >= 0.0) && u.data.iter().any(|v| *v > 0.0), "{target}");
+        assert!(
+            u.data.iter().all(|v| *v >= 0.0) && u.data.iter().any(|v| *v > 0.0),
+            "{target}"
+        );
     }
     let out2 = t.path().join("q.exr");
     estimate(t.path(), "lighting", &p, &out2, &["--res", "32", "--uncertainty"], &m).fails(&["ensemble"]);

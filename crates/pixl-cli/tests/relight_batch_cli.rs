@@ -107,6 +107,10 @@ fn a_folder_is_relit_with_one_model_load_as_each_photo_alone() {
         (Some(0), Some(12)),
         "{again}"
     );
+    // The same folder spelt another way: still done.
+    let spelt = out.join(".");
+    let again = pixl_q(&batch(&shots, &depths, &spelt, &["--json"])).ok().json();
+    assert_eq!(again["skipped"].as_u64(), Some(12), "{again}");
     // Another lighting is another set-up: redone.
     let other = pixl_q(
         &[

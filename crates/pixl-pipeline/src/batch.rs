@@ -456,6 +456,10 @@ pub enum Status {
 pub struct Record {
     pub input: String,
     pub output: String,
+    /// The output's name relative to the output folder (what a rerun matches on, however the
+    /// folder is spelt).
+    #[serde(default)]
+    pub rel: String,
     pub status: Status,
     pub seconds: f64,
     pub weights: String,
@@ -475,8 +479,8 @@ pub fn log_name(shard: Shard) -> String {
     }
 }
 
-/// The photos recorded done in `out_dir`'s logs: output → (input SHA-256, set-up), the last
-/// record of each output winning. Unreadable lines (a log cut by a kill) are ignored.
+/// The photos recorded done in `out_dir`'s logs: output relative to `out_dir` → (input SHA-256,
+/// set-up), the last record of each output winning. Unreadable lines (a log cut by a kill) are ignored.
 pub fn done_records(out_dir: &Path) -> HashMap<String, (String, String)> {
     let mut done = HashMap::new();
     let Ok(entries) = std::fs::read_dir(out_dir) else {
@@ -500,16 +504,25 @@ pub fn done_records(out_dir: &Path) -> HashMap<String, (String, String)> {
         for r in text.lines().filter_map(|l| serde_json::from_str::<Record>(l).ok()) {
             match (r.status, r.input_sha256) {
                 (Status::Done, Some(sha)) => {
-                    done.insert(r.output, (sha, r.setup));
+                    done.insert(r.rel, (sha, r.setup));
                 }
                 (Status::Failed, _) => {
-                    done.remove(&r.output);
+                    done.remove(&r.rel);
                 }
                 _ => {}
             }
         }
     }
     done
+}
+
+/// `item`'s output relative to `out_dir` (its full path when it is not under it).
+fn rel_of(item: &Item, out_dir: &Path) -> String {
+    item.output
+        .strip_prefix(out_dir)
+        .unwrap_or(&item.output)
+        .display()
+        .to_string()
 }
 
 /// How every photo of a batch is relit.
@@ -662,8 +675,9 @@ pub fn run(
         let sha = pixl_estimate::hub::sha256_file(&item.input.path).ok();
         let key = item.setup_key(&opts.settings);
         let output = item.output.display().to_string();
+        let rel = rel_of(item, &opts.out_dir);
         let finished = item.output.is_file()
-            && matches!((done.get(&output), &sha), (Some((s, k)), Some(sha)) if s == sha && *k == key);
+            && matches!((done.get(&rel), &sha), (Some((s, k)), Some(sha)) if s == sha && *k == key);
         if finished {
             summary.skipped += 1;
             write(&Record {
@@ -676,6 +690,7 @@ pub fn run(
                 input_sha256: sha,
                 error: None,
                 shard: shard.clone(),
+                rel,
             })?;
         } else {
             todo.push((item, sha, key));
@@ -733,6 +748,7 @@ pub fn run(
                 input_sha256: sha.clone(),
                 error,
                 shard: shard.clone(),
+                rel: rel_of(item, &opts.out_dir),
             })?;
         }
         Ok(())
