@@ -28,12 +28,13 @@ pub fn gelu(xs: &Tensor) -> Result<Tensor> {
 /// `(o + 0.5)·(n_in / n_out) − 0.5` clamped below at 0, upper neighbour clamped to the last pixel,
 /// no antialiasing when downsampling.
 ///
-/// Differentiable path: `Wy · X · Wxᵀ` with the interpolation matrices of [`interp_matrix`], so it
-/// is differentiable through candle's matmul backward (cost `O(C·H·W·(h + w))`, fine for feature
-/// maps, heavy for full-resolution images). Fast paths (no gradient): on the CPU in f32, one
-/// direct parallel pass over output rows with PyTorch's f32 index and weight arithmetic;
-/// elsewhere candle's `upsample_bilinear2d(h, w, align_corners = false)` (candle's CPU kernel is
-/// single-threaded). Both are checked against the matrix path in the tests.
+/// On the CPU in f32: one direct parallel pass over output rows with PyTorch's f32 index and
+/// weight arithmetic; when a gradient is needed, the same pass as a custom op whose backward is
+/// its adjoint (each output gradient spread back onto the two × two input samples it read, with
+/// the same weights). Elsewhere: candle's `upsample_bilinear2d(h, w, align_corners = false)`
+/// without a gradient (candle's CPU kernel is single-threaded), and with one `Wy · X · Wxᵀ` with
+/// the interpolation matrices of [`interp_matrix`], differentiable through candle's matmul
+/// backward (cost `O(C·H·W·(h + w))`). All are checked against the matrix path in the tests.
 pub fn resize_bilinear(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
     let (_b, _c, ih, iw) = xs.dims4()?;
     if ih == h && iw == w {
@@ -43,10 +44,13 @@ pub fn resize_bilinear(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
         candle_core::bail!("bilinear resize from {ih}x{iw} to {h}x{w}: sizes must be positive");
     }
     let _t = crate::profile::span("bilinear resize");
-    if !crate::needs_grad(&[xs]) {
-        if crate::fused::cpu_f32(xs) {
+    if crate::fused::cpu_f32(xs) {
+        if !crate::needs_grad(&[xs]) {
             return resize_bilinear_cpu(xs, h, w);
         }
+        return xs.contiguous()?.apply_op1(Resize { h, w });
+    }
+    if !crate::needs_grad(&[xs]) {
         return xs.upsample_bilinear2d(h, w, false);
     }
     let dtype = xs.dtype();
@@ -103,18 +107,27 @@ fn taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32, f32)> {
 fn resize_bilinear_cpu(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
     let (b, c, ih, iw) = xs.dims4()?;
     let xs = xs.contiguous()?;
-    let (ty, tx) = (taps(ih, h), taps(iw, w));
-    let mut out = vec![0f32; b * c * h * w];
-    {
+    let out = {
         let (storage, layout) = xs.storage_and_layout();
         let src = crate::fused::storage_slice(&storage, layout, "bilinear resize")?;
+        resize_planes(src, b * c, (ih, iw), (h, w))
+    };
+    Tensor::from_vec(out, (b, c, h, w), xs.device())
+}
+
+/// The resize of `planes` contiguous `ih × iw` planes of `src` to `h × w` (see
+/// [`resize_bilinear_cpu`]).
+fn resize_planes(src: &[f32], planes: usize, (ih, iw): (usize, usize), (h, w): (usize, usize)) -> Vec<f32> {
+    let (ty, tx) = (taps(ih, h), taps(iw, w));
+    let mut out = vec![0f32; planes * h * w];
+    {
         // Input rows the output reads (every row when upsampling; some when shrinking).
         let mut used = vec![false; ih];
         for &(y0, y1, _, _) in &ty {
             (used[y0], used[y1]) = (true, true);
         }
         // Planes split into bands of output rows when there are fewer planes than threads.
-        let bands = rayon::current_num_threads().div_ceil(b * c).clamp(1, h);
+        let bands = rayon::current_num_threads().div_ceil(planes).clamp(1, h);
         let band = h.div_ceil(bands);
         out.par_chunks_mut(h * w)
             .enumerate()
@@ -148,5 +161,85 @@ fn resize_bilinear_cpu(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
                 }
             });
     }
-    Tensor::from_vec(out, (b, c, h, w), xs.device())
+    out
+}
+
+/// The adjoint of [`resize_planes`]: `grad` holds `planes` planes of `h × w` output gradients;
+/// each is spread back onto the input samples its output read, with the same weights, giving
+/// `planes` planes of `ih × iw`. Vertical adjoint into a `ih × w` buffer first, then horizontal.
+fn resize_planes_adjoint(grad: &[f32], planes: usize, (ih, iw): (usize, usize), (h, w): (usize, usize)) -> Vec<f32> {
+    let (ty, tx) = (taps(ih, h), taps(iw, w));
+    let mut out = vec![0f32; planes * ih * iw];
+    out.par_chunks_mut(ih * iw).enumerate().for_each(|(plane, dst)| {
+        let g = &grad[plane * h * w..(plane + 1) * h * w];
+        let mut hx = vec![0f32; ih * w];
+        for (row, &(y0, y1, wy0, wy1)) in g.chunks(w).zip(&ty) {
+            for (d, &v) in hx[y0 * w..(y0 + 1) * w].iter_mut().zip(row) {
+                *d += wy0 * v;
+            }
+            for (d, &v) in hx[y1 * w..(y1 + 1) * w].iter_mut().zip(row) {
+                *d += wy1 * v;
+            }
+        }
+        for (src_row, dst_row) in hx.chunks(w).zip(dst.chunks_mut(iw)) {
+            for (&v, &(x0, x1, wx0, wx1)) in src_row.iter().zip(&tx) {
+                dst_row[x0] += wx0 * v;
+                dst_row[x1] += wx1 * v;
+            }
+        }
+    });
+    out
+}
+
+/// [`resize_bilinear`] on the CPU in f32 with a gradient: forward [`resize_planes`], backward
+/// [`ResizeAdjoint`].
+struct Resize {
+    h: usize,
+    w: usize,
+}
+
+impl candle_core::CustomOp1 for Resize {
+    fn name(&self) -> &'static str {
+        "bilinear-resize"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let src = crate::fused::slice(s, l, self.name())?;
+        let (b, c, ih, iw) = l.shape().dims4()?;
+        let out = resize_planes(src, b * c, (ih, iw), (self.h, self.w));
+        Ok((candle_core::CpuStorage::F32(out), (b, c, self.h, self.w).into()))
+    }
+
+    fn bwd(&self, arg: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        let (_b, _c, ih, iw) = arg.dims4()?;
+        let op = ResizeAdjoint { ih, iw };
+        Ok(Some(grad.contiguous()?.apply_op1_no_bwd(&op)?))
+    }
+}
+
+/// The backward of [`Resize`]: output gradients `(B, C, h, w)` → input gradients `(B, C, ih, iw)`.
+struct ResizeAdjoint {
+    ih: usize,
+    iw: usize,
+}
+
+impl candle_core::CustomOp1 for ResizeAdjoint {
+    fn name(&self) -> &'static str {
+        "bilinear-resize-adjoint"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let g = crate::fused::slice(s, l, self.name())?;
+        let (b, c, h, w) = l.shape().dims4()?;
+        let out = resize_planes_adjoint(g, b * c, (self.ih, self.iw), (h, w));
+        Ok((candle_core::CpuStorage::F32(out), (b, c, self.ih, self.iw).into()))
+    }
 }

@@ -249,6 +249,35 @@ fn resize_fast_and_slow_paths_agree_and_gradients() -> Result<()> {
 }
 
 #[test]
+fn resize_f32_training_path_matches_the_f64_matrix_path() -> Result<()> {
+    // The f32 CPU op with a gradient (direct kernel + adjoint) against the f64 matrix path,
+    // values and the input gradient of Σ y ⊙ G, up and down, odd sizes.
+    for (shape, (h, w)) in [
+        ((2, 3, 7, 5), (13, 9)),
+        ((1, 2, 9, 8), (4, 3)),
+        ((1, 1, 5, 6), (5, 6 * 2 + 1)),
+    ] {
+        let x64 = uniform(shape, -1.0, 1.0, 21, &cpu())?;
+        let g64 = uniform((shape.0, shape.1, h, w), -1.0, 1.0, 22, &cpu())?;
+        let run = |x: &Tensor, g: &Tensor| -> Result<(Tensor, Tensor)> {
+            let v = candle_core::Var::from_tensor(x)?;
+            let y = resize_bilinear(v.as_tensor(), h, w)?;
+            let grads = (&y * g)?.sum_all()?.backward()?;
+            let dx = grads.get(v.as_tensor()).expect("input gradient").clone();
+            Ok((y.to_dtype(DType::F64)?, dx.to_dtype(DType::F64)?))
+        };
+        let (y32, dx32) = run(&x64.to_dtype(DType::F32)?, &g64.to_dtype(DType::F32)?)?;
+        let (y64, dx64) = run(&x64, &g64)?;
+        let (dy, ddx) = (max_abs_diff(&y32, &y64)?, max_abs_diff(&dx32, &dx64)?);
+        assert!(
+            dy < 1e-5 && ddx < 1e-5,
+            "{shape:?} -> {h}x{w}: values {dy}, gradient {ddx}"
+        );
+    }
+    Ok(())
+}
+
+#[test]
 fn rope_hand_value_and_identity_at_origin() -> Result<()> {
     // head_dim 4: one frequency (base⁰ = 1); dims (0,1) rotate by y, (2,3) by x.
     let rope = Rope2d::new(4, 2, 3, 100.0, &cpu())?;

@@ -8,7 +8,8 @@
 //!
 //! Update (PyTorch's `AdamW`, step `t` from 1): `θ ← θ·(1 − lr·wd)`, then
 //! `m ← β1·m + (1−β1)·g`, `v ← β2·v + (1−β2)·g²`, `θ ← θ − lr·(m/(1−β1ᵗ)) / (√(v/(1−β2ᵗ)) + ε)`.
-use candle_core::{Result, Tensor, Var};
+use candle_core::{CpuStorage, DType, Layout, Result, Tensor, Var};
+use rayon::prelude::*;
 use std::collections::BTreeMap;
 
 /// Learning-rate schedule: `lr(s) = peak · s / warmup` for `s ≤ warmup`, then
@@ -118,8 +119,9 @@ impl AdamW {
         let params = vars
             .into_iter()
             .map(|(name, var)| {
+                // Two buffers of their own: the CPU update writes them in place.
                 let m = var.as_tensor().zeros_like()?;
-                let v = m.clone();
+                let v = var.as_tensor().zeros_like()?;
                 let decay = decays(&name, var.dims());
                 Ok(Param { name, var, m, v, decay })
             })
@@ -135,6 +137,11 @@ impl AdamW {
         let (bc1, bc2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
         for (p, g) in self.params.iter_mut().zip(grads) {
             let Some(g) = g else { continue };
+            if fused_cpu(&[p.var.as_tensor(), &p.m, &p.v, g]) {
+                let wd = if p.decay { self.cfg.weight_decay } else { 0.0 };
+                step_in_place(p, g, lr, wd, &self.cfg, (bc1, bc2))?;
+                continue;
+            }
             // Detached: the optimiser's arithmetic must not join the autograd graph, or every
             // step would keep the previous steps' tensors alive through m, v and θ.
             let g = g.detach();
@@ -155,15 +162,146 @@ impl AdamW {
     }
 }
 
-/// Global L2 norm of all gradients, `√(Σ_i ‖g_i‖²)`, accumulated in f64.
+/// Whether every tensor is a contiguous f32 CPU tensor (the fused in-place update applies).
+fn fused_cpu(ts: &[&Tensor]) -> bool {
+    ts.iter()
+        .all(|t| t.device().is_cpu() && t.dtype() == DType::F32 && t.is_contiguous())
+        && ts.windows(2).all(|w| w[0].dims() == w[1].dims())
+}
+
+/// The AdamW update of one parameter in place, in f32, one pass per buffer: `m` and `v` from
+/// `g`, then `θ` from `m` and `v` (the arithmetic of the tensor path, in the same order; no
+/// temporaries). The moments are fresh buffers of their own (made by `zeros_like` or loaded),
+/// and the parameter's storage is the `Var`'s, shared with the model that reads it.
+fn step_in_place(p: &mut Param, g: &Tensor, lr: f64, wd: f64, cfg: &AdamWConfig, (bc1, bc2): (f64, f64)) -> Result<()> {
+    let g = g.detach();
+    p.m.inplace_op2(
+        &g,
+        &Moment {
+            beta: cfg.beta1 as f32,
+            square: false,
+        },
+    )?;
+    p.v.inplace_op2(
+        &g,
+        &Moment {
+            beta: cfg.beta2 as f32,
+            square: true,
+        },
+    )?;
+    let update = Update {
+        lr: lr as f32,
+        keep: (1.0 - lr * wd) as f32,
+        bc1: bc1 as f32,
+        bc2: bc2 as f32,
+        eps: cfg.eps as f32,
+        decay: wd != 0.0,
+    };
+    p.var.as_tensor().inplace_op3(&p.m, &p.v, &update)
+}
+
+/// `x ← β·x + (1 − β)·g` (or `·g²` when `square`), in place.
+struct Moment {
+    beta: f32,
+    square: bool,
+}
+
+impl candle_core::InplaceOp2 for Moment {
+    fn name(&self) -> &'static str {
+        "adamw-moment"
+    }
+
+    fn cpu_fwd(&self, dst: &mut CpuStorage, dst_l: &Layout, g: &CpuStorage, g_l: &Layout) -> Result<()> {
+        let (x, g) = (f32_mut(dst, dst_l)?, f32_ref(g, g_l)?);
+        let (b, c) = (self.beta, 1.0 - self.beta);
+        x.par_chunks_mut(CHUNK).zip(g.par_chunks(CHUNK)).for_each(|(x, g)| {
+            if self.square {
+                x.iter_mut().zip(g).for_each(|(x, &g)| *x = *x * b + (g * g) * c);
+            } else {
+                x.iter_mut().zip(g).for_each(|(x, &g)| *x = *x * b + g * c);
+            }
+        });
+        Ok(())
+    }
+}
+
+/// `θ ← θ·(1 − lr·wd) − lr·(m / bc1) / (√(v / bc2) + ε)`, in place.
+struct Update {
+    lr: f32,
+    keep: f32,
+    bc1: f32,
+    bc2: f32,
+    eps: f32,
+    decay: bool,
+}
+
+impl candle_core::InplaceOp3 for Update {
+    fn name(&self) -> &'static str {
+        "adamw-update"
+    }
+
+    fn cpu_fwd(
+        &self,
+        dst: &mut CpuStorage,
+        dst_l: &Layout,
+        m: &CpuStorage,
+        m_l: &Layout,
+        v: &CpuStorage,
+        v_l: &Layout,
+    ) -> Result<()> {
+        let (theta, m, v) = (f32_mut(dst, dst_l)?, f32_ref(m, m_l)?, f32_ref(v, v_l)?);
+        theta
+            .par_chunks_mut(CHUNK)
+            .zip(m.par_chunks(CHUNK).zip(v.par_chunks(CHUNK)))
+            .for_each(|(t, (m, v))| {
+                for ((t, &m), &v) in t.iter_mut().zip(m).zip(v) {
+                    let base = if self.decay { *t * self.keep } else { *t };
+                    let denom = (v / self.bc2).sqrt() + self.eps;
+                    *t = base - ((m / self.bc1) / denom) * self.lr;
+                }
+            });
+        Ok(())
+    }
+}
+
+/// Values per parallel task of the fused passes.
+const CHUNK: usize = 1 << 15;
+
+fn f32_ref<'a>(s: &'a CpuStorage, l: &Layout) -> Result<&'a [f32]> {
+    match (s, l.contiguous_offsets()) {
+        (CpuStorage::F32(v), Some((a, b))) => Ok(&v[a..b]),
+        _ => candle_core::bail!("AdamW: expected a contiguous f32 buffer"),
+    }
+}
+
+fn f32_mut<'a>(s: &'a mut CpuStorage, l: &Layout) -> Result<&'a mut [f32]> {
+    match (s, l.contiguous_offsets()) {
+        (CpuStorage::F32(v), Some((a, b))) => Ok(&mut v[a..b]),
+        _ => candle_core::bail!("AdamW: expected a contiguous f32 buffer"),
+    }
+}
+
+/// Global L2 norm of all gradients, `√(Σ_i ‖g_i‖²)`, accumulated in f64 (on the CPU in f32:
+/// one parallel pass per gradient, no f64 copy).
 pub fn global_norm(grads: &[Option<Tensor>]) -> Result<f64> {
     let mut sum = 0.0f64;
     for g in grads.iter().flatten() {
-        sum += g
-            .to_dtype(candle_core::DType::F64)?
-            .sqr()?
-            .sum_all()?
-            .to_scalar::<f64>()?;
+        if g.device().is_cpu() && g.dtype() == DType::F32 {
+            let g = g.contiguous()?;
+            let (storage, layout) = g.storage_and_layout();
+            let candle_core::Storage::Cpu(s) = &*storage else {
+                candle_core::bail!("global norm: expected a CPU gradient");
+            };
+            let v = f32_ref(s, layout)?;
+            // Partial sums in chunk order, then added in order: the same total on every run.
+            let partial: Vec<f64> = v
+                .par_chunks(CHUNK)
+                .map(|c| c.iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>())
+                .collect();
+            sum += partial.iter().sum::<f64>();
+            continue;
+        }
+        sum += g.to_dtype(DType::F64)?.sqr()?.sum_all()?.to_scalar::<f64>()?;
     }
     Ok(sum.sqrt())
 }
@@ -185,4 +323,53 @@ pub fn clip_global_norm(grads: &mut [Option<Tensor>], max_norm: f64) -> Result<f
         }
     }
     Ok(norm)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use candle_core::Device;
+
+    /// Three AdamW steps of the fused in-place CPU path (f32) against the tensor path (f64, which
+    /// does not take the fused path), with and without weight decay and clipping.
+    #[test]
+    fn fused_update_matches_the_tensor_path() -> Result<()> {
+        let dev = Device::Cpu;
+        // In name order, as the optimiser keeps its parameters.
+        let shapes: [(&str, &[usize]); 3] = [("a.bias", &[7]), ("a.weight", &[7, 5]), ("b.weight", &[3, 2, 3, 3])];
+        let make = |dtype: DType| -> Result<AdamW> {
+            let mut vars = BTreeMap::new();
+            for (i, (name, dims)) in shapes.iter().enumerate() {
+                let t = pixl_nn::testing::uniform(*dims, -1.0, 1.0, 10 + i as u64, &dev)?.to_dtype(dtype)?;
+                vars.insert(name.to_string(), Var::from_tensor(&t)?);
+            }
+            AdamW::new(vars, AdamWConfig::default())
+        };
+        let (mut fused, mut plain) = (make(DType::F32)?, make(DType::F64)?);
+        for step in 0..3u64 {
+            let grads64: Vec<Option<Tensor>> = shapes
+                .iter()
+                .enumerate()
+                .map(|(i, (_, dims))| {
+                    pixl_nn::testing::uniform(*dims, -2.0, 2.0, 100 * step + i as u64, &dev).map(Some)
+                })
+                .collect::<Result<_>>()?;
+            let mut g32: Vec<Option<Tensor>> = grads64
+                .iter()
+                .map(|g| g.as_ref().map(|g| g.to_dtype(DType::F32)).transpose())
+                .collect::<Result<_>>()?;
+            let mut g64 = grads64.clone();
+            let (n32, n64) = (clip_global_norm(&mut g32, 3.0)?, clip_global_norm(&mut g64, 3.0)?);
+            assert!((n32 - n64).abs() < 1e-5 * n64, "norm {n32} vs {n64}");
+            fused.step(&g32, 1e-2)?;
+            plain.step(&g64, 1e-2)?;
+        }
+        for (a, b) in fused.params.iter().zip(&plain.params) {
+            for (x, y) in [(a.var.as_tensor(), b.var.as_tensor()), (&a.m, &b.m), (&a.v, &b.v)] {
+                let d = pixl_nn::testing::max_abs_diff(&x.to_dtype(DType::F64)?, y)?;
+                assert!(d < 1e-5, "{}: {d}", a.name);
+            }
+        }
+        Ok(())
+    }
 }
