@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """PIXLRelight in PyTorch: an independent implementation of the `pixl-model` network, for parity
-checks and speed comparisons against `pixl` (scripts/bench-vs-pytorch.sh).
+checks, speed comparisons and gradient checks against `pixl` (scripts/bench-vs-pytorch.sh,
+scripts/bench-train-vs-pytorch.sh, scripts/check-train-grads.sh).
 
 It loads a `pixl` checkpoint (safetensors, config JSON in the `config` metadata, tensor names as in
 crates/pixl-model/README.md) with `load_state_dict(strict=True)`: the module tree below has
@@ -9,7 +10,7 @@ exactly the checkpoint's names. Classes mirror the Rust modules: `VitEncoder` (v
 pixl-nn rope.rs), `DptHead` (dpt.rs), `Modulation` (modulation.rs), `PixlRelight` (model.rs), and
 `relight_full` for the working-resolution path of fullres.rs (what `pixl relight` runs).
 
-Commands (all f32, CPU):
+Commands (f32 on the CPU unless said otherwise):
 
   run      --weights W --source S --intrinsics CT --out O [--max-side N]
            the network on a source (.exr/.png/.npy, RGB in [0, 1]) and a C_T (.exr with
@@ -21,6 +22,16 @@ Commands (all f32, CPU):
   perturb  --weights IN --out OUT --seed S: adds seeded noise to every tensor so that every part of
            the network (also the zero-initialised modulation conv) affects the output.
   inputs   --size WxH --seed S --source S.exr --intrinsics CT.exr: random source and C_T files.
+  train-step  --weights W | --config PRESET, --size WxH, --batch B: `pixl bench train-step`'s
+           step (forward, L1 loss on the clipped output, backward, global-norm clip at 1,
+           AdamW lr 1e-4 with pixl's betas, eps and decay groups), its protocol (warm-ups, timed
+           runs, uniform random inputs), --threads N; prints per-step times, the median, the
+           median forward / backward / clip+AdamW split, peak RSS (scripts/bench-train-vs-pytorch.sh).
+  grads    --weights W --inputs I --out G [--dtype f64]: the same loss on `src`, `ct`, `tgt` from
+           the safetensors file I, and every parameter's gradient, computed in float64, saved
+           under the checkpoint's names (scripts/check-train-grads.sh).
+  compare-grads A B --tol X: per-tensor relative L2 error ‖a − b‖₂ / ‖b‖₂, worst first; exits 1
+           if any tensor is above X, missing or misshapen.
 
 Requirements: torch, safetensors, numpy; OpenEXR (pip `openexr`) for .exr files; Pillow for .png.
 """
@@ -134,9 +145,10 @@ class LayerNorm2d(nn.LayerNorm):
 class Rope2d:
     """2D RoPE tables (pixl-nn rope.rs): the head dimension `D` is split in two halves, the first
     rotated by the token's row, the second by its column; within a half, pairs `(i, i + D/4)`
-    rotate by `pos · base^(-i / (D/4))` (rotate-half). Tables computed in f64, stored in f32."""
+    rotate by `pos · base^(-i / (D/4))` (rotate-half). Tables computed in f64, stored as `dtype`
+    (f32 as pixl's; f64 for the float64 gradient reference)."""
 
-    def __init__(self, head_dim: int, gh: int, gw: int, base: float):
+    def __init__(self, head_dim: int, gh: int, gw: int, base: float, dtype: torch.dtype = torch.float32):
         q = head_dim // 4
         freqs = base ** (-torch.arange(q, dtype=torch.float64) / q)  # (q)
         ys, xs = torch.meshgrid(torch.arange(gh, dtype=torch.float64),
@@ -144,8 +156,8 @@ class Rope2d:
         ang_y = ys.reshape(-1, 1) * freqs  # (N, q)
         ang_x = xs.reshape(-1, 1) * freqs
         ang = torch.cat([ang_y, ang_y, ang_x, ang_x], dim=1)  # (N, D)
-        self.cos = ang.cos().float()
-        self.sin = ang.sin().float()
+        self.cos = ang.cos().to(dtype)
+        self.sin = ang.sin().to(dtype)
 
     def apply(self, x: torch.Tensor) -> torch.Tensor:
         """Rotates `(B, H, N, D)` queries or keys."""
@@ -325,7 +337,7 @@ class Trunk(nn.Module):
     def forward(self, tokens: torch.Tensor, gh: int, gw: int) -> list[torch.Tensor]:
         b, n, d = tokens.shape
         r = self.registers.shape[1]
-        rope = Rope2d(self.head_dim, gh, gw, self.rope_base)
+        rope = Rope2d(self.head_dim, gh, gw, self.rope_base, tokens.dtype)
         x = torch.cat([self.registers.expand(b, r, d), tokens], dim=1)
         outs = []
         for i, block in enumerate(self.blocks):
@@ -467,6 +479,11 @@ class PixlRelight(nn.Module):
     def forward(self, src: torch.Tensor, ct: torch.Tensor) -> torch.Tensor:
         g, b = self.gain_bias(src, ct)
         return Modulation.apply(src, g, b)
+
+    def forward_unclipped(self, src: torch.Tensor, ct: torch.Tensor) -> torch.Tensor:
+        """`(1 + g) ⊙ I_S + b` before the clip (model.rs `forward_unclipped`), what training takes."""
+        g, b = self.gain_bias(src, ct)
+        return (g + 1.0) * src + b
 
 
 # ---------------------------------------------------------------------------------------------
@@ -639,6 +656,65 @@ def write_rgb(path: Path, img: torch.Tensor) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
+# Training step (pixl-train: loss.rs, optim.rs, recompute.rs; `pixl bench train-step`)
+# ---------------------------------------------------------------------------------------------
+
+ADAMW_BETAS = (0.9, 0.95)  # AdamWConfig::default()
+ADAMW_EPS = 1e-8
+ADAMW_WEIGHT_DECAY = 0.05
+CLIP_NORM = 1.0
+BENCH_LR = 1e-4  # the fixed rate of `pixl bench train-step`
+
+
+def decays(name: str, shape) -> bool:
+    """optim.rs `decays`: weight decay for tensors of rank ≥ 2 except the register tokens, the
+    position embeddings, layer scales (`gamma`) and biases."""
+    exempt = "registers" in name or "pos_embed" in name or name.endswith("gamma")
+    return len(shape) >= 2 and not exempt and not name.endswith(".bias")
+
+
+def train_loss(pred: torch.Tensor, tgt: torch.Tensor) -> torch.Tensor:
+    """loss.rs `loss` with `Objective::l1_only()`: `pred` is the unclipped output; the L1 (mean
+    absolute error over all `B·3·H·W` values) is taken on its clip to [0, 1], so saturated pixels
+    pass no gradient."""
+    return (pred.clamp(0.0, 1.0) - tgt).abs().mean()
+
+
+def make_adamw(model: nn.Module, lr: float, impl: str = "default") -> torch.optim.AdamW:
+    """`torch.optim.AdamW` with our configuration: two groups, decayed (per `decays`) and not."""
+    groups: dict[bool, list[nn.Parameter]] = {True: [], False: []}
+    for name, p in model.named_parameters():
+        groups[decays(name, p.shape)].append(p)
+    kw = {} if impl == "default" else {impl: True}  # "foreach" or "fused"
+    return torch.optim.AdamW(
+        [{"params": groups[True], "weight_decay": ADAMW_WEIGHT_DECAY},
+         {"params": groups[False], "weight_decay": 0.0}],
+        lr=lr, betas=ADAMW_BETAS, eps=ADAMW_EPS, **kw)
+
+
+def check_twin(model: nn.Module, tensors: dict[str, torch.Tensor], cfg: dict) -> tuple[int, int]:
+    """The twin's parameters are exactly the checkpoint's tensors (names, shapes); returns
+    `(tensor count, parameter count)`."""
+    named = dict(model.named_parameters())
+    missing, extra = sorted(set(tensors) - set(named)), sorted(set(named) - set(tensors))
+    if missing or extra:
+        raise SystemExit(f"the PyTorch twin differs from the checkpoint: missing {missing[:5]}, extra {extra[:5]}")
+    for k, t in tensors.items():
+        if tuple(named[k].shape) != tuple(t.shape):
+            raise SystemExit(f"{k}: twin shape {tuple(named[k].shape)}, checkpoint {tuple(t.shape)}")
+    if list(model.buffers()):
+        raise SystemExit("the PyTorch twin has buffers the checkpoint does not store")
+    return len(named), sum(p.numel() for p in named.values())
+
+
+def read_tensors(path: Path) -> tuple[dict[str, torch.Tensor], dict]:
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        return {k: f.get_tensor(k) for k in f.keys()}, (f.metadata() or {})
+
+
+# ---------------------------------------------------------------------------------------------
 # Command line
 # ---------------------------------------------------------------------------------------------
 
@@ -739,6 +815,154 @@ def cmd_inputs(args) -> None:
     print(f"wrote {args.source} and {args.intrinsics} ({w}x{h}, seed {args.seed})")
 
 
+def cmd_train_step(args) -> None:
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    if args.weights is not None:
+        cfg, tensors, _ = read_checkpoint(args.weights)
+        model = PixlRelight(cfg)
+        model.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=True)
+        n_tensors, n_params = check_twin(model, tensors, cfg)
+        del tensors
+        name = str(args.weights)
+    else:
+        model = PixlRelight(preset(args.config))  # PyTorch's default init; values do not matter for timing
+        n_tensors, n_params = len(list(model.parameters())), sum(p.numel() for p in model.parameters())
+        name = args.config
+    model.train()
+    opt = make_adamw(model, BENCH_LR, args.adamw)
+    params = list(model.parameters())
+    w, h = parse_size(args.size)
+    b = args.batch
+    gen = torch.Generator().manual_seed(1)
+    src = torch.rand(b, 3, h, w, generator=gen)
+    ct = torch.rand(b, 9, h, w, generator=gen)
+    tgt = torch.rand(b, 3, h, w, generator=gen)
+
+    def step() -> tuple[float, float, float, float]:
+        t0 = time.perf_counter()
+        opt.zero_grad(set_to_none=True)
+        loss = train_loss(model.forward_unclipped(src, ct), tgt)
+        t1 = time.perf_counter()
+        loss.backward()
+        t2 = time.perf_counter()
+        torch.nn.utils.clip_grad_norm_(params, CLIP_NORM)
+        opt.step()
+        t3 = time.perf_counter()
+        return (t3 - t0) * 1e3, (t1 - t0) * 1e3, (t2 - t1) * 1e3, loss.item()
+
+    for _ in range(args.warmups):
+        step()
+    runs, fwd, bwd, upd = [], [], [], []
+    last_loss = float("nan")
+    for _ in range(args.runs):
+        total, f, bw, last_loss = step()
+        runs.append(total)
+        fwd.append(f)
+        bwd.append(bw)
+        upd.append(total - f - bw)
+    med = statistics.median
+    result = {
+        "impl": "torch", "torch": torch.__version__, "config": name, "tensors": n_tensors, "params": n_params,
+        "width": w, "height": h, "batch": b, "threads": torch.get_num_threads(), "adamw": args.adamw,
+        "warmups": args.warmups, "runs_ms": runs, "median_ms": med(runs), "min_ms": min(runs),
+        "mean_ms": statistics.fmean(runs),
+        "split_median_ms": {"forward": med(fwd), "backward": med(bwd), "clip_optim": med(upd)},
+        "last_loss": last_loss, "peak_rss_mb": peak_rss_mb(),
+    }
+    if args.json:
+        print(json.dumps(result))
+    else:
+        s = result["split_median_ms"]
+        print(f"torch {name} ({n_params / 1e6:.2f} M params in {n_tensors} tensors), batch {b} at {w}x{h}, f32, "
+              f"{result['threads']} threads: per step " + " ".join(f"{r:.1f}" for r in runs) + " ms")
+        print(f"  median {result['median_ms']:.1f} ms (min {result['min_ms']:.1f}; {args.runs} runs after "
+              f"{args.warmups} warm-ups): forward + loss {s['forward']:.1f}, backward {s['backward']:.1f}, "
+              f"clip + AdamW {s['clip_optim']:.1f} ms (medians); last loss {last_loss:.4f}; "
+              f"peak RSS {result['peak_rss_mb']:.0f} MB")
+
+
+def cmd_grads(args) -> None:
+    dtype = {"f64": torch.float64, "f32": torch.float32}[args.dtype]
+    cfg, tensors, _ = read_checkpoint(args.weights)
+    model = PixlRelight(cfg)
+    model.load_state_dict({k: v.float() for k, v in tensors.items()}, strict=True)
+    n_tensors, n_params = check_twin(model, tensors, cfg)
+    model = model.to(dtype).train()
+    inputs, _ = read_tensors(args.inputs)
+    try:
+        src, ct, tgt = (inputs[k].to(dtype) for k in ("src", "ct", "tgt"))
+    except KeyError as e:
+        raise SystemExit(f"{args.inputs}: no tensor {e} (needs src, ct, tgt)")
+    if src.shape[1] != 3 or ct.shape[1] != 9 or tgt.shape != src.shape or ct.shape[2:] != src.shape[2:]:
+        raise SystemExit(f"inputs of shapes src {tuple(src.shape)}, ct {tuple(ct.shape)}, tgt {tuple(tgt.shape)}")
+    t = time.perf_counter()
+    pred = model.forward_unclipped(src, ct)
+    loss = train_loss(pred, tgt)
+    loss.backward()
+    secs = time.perf_counter() - t
+    inside = ((pred > 0) & (pred < 1)).to(dtype).mean().item()
+    grads = {}
+    for name, p in model.named_parameters():
+        if p.grad is None:
+            print(f"torch: {name} got no gradient", file=sys.stderr)
+            continue
+        grads[name] = p.grad.detach().contiguous()
+    meta = {"loss": repr(loss.item()), "impl": "torch", "dtype": args.dtype}
+    from safetensors.torch import save_file
+
+    save_file(grads, str(args.out), metadata=meta)
+    b, _, h, w = src.shape
+    print(f"torch {args.dtype}: loss {loss.item():.6e}, {len(grads)} of {n_tensors} gradients ({n_params / 1e6:.2f} M "
+          f"values) written to {args.out} (batch {b}, {w}x{h}; {100 * inside:.1f}% of outputs inside (0, 1); "
+          f"forward + backward {secs:.1f} s)")
+
+
+def cmd_compare_grads(args) -> None:
+    a, meta_a = read_tensors(args.a)
+    b, meta_b = read_tensors(args.b)
+    rows = []  # (rel, name, max_abs, |b|, numel)
+    bad = []
+    num_all = den_all = 0.0
+    for name in sorted(set(a) | set(b)):
+        if name not in a or name not in b:
+            bad.append(f"{name}: only in {args.a if name in a else args.b}")
+            continue
+        x, y = a[name].double(), b[name].double()
+        if x.shape != y.shape:
+            bad.append(f"{name}: shapes {tuple(x.shape)} vs {tuple(y.shape)}")
+            continue
+        d = x - y
+        num, den = d.square().sum().item(), y.square().sum().item()
+        num_all += num
+        den_all += den
+        rel = math.sqrt(num / den) if den > 0 else math.sqrt(num)  # absolute where the reference is 0
+        if not torch.isfinite(x).all():
+            rel = math.inf
+        rows.append((rel, name, d.abs().max().item(), math.sqrt(den), y.numel()))
+    rows.sort(key=lambda r: (-r[0] if not math.isnan(r[0]) else -math.inf, r[1]))
+    over = [r for r in rows if not r[0] <= args.tol]
+    print(f"gradients: {args.a} against {args.b}, relative L2 error ‖a − b‖₂ / ‖b‖₂ per tensor")
+    print(f"| tensor | numel | ‖b‖₂ | max abs diff | rel L2 |")
+    print(f"|---|---|---|---|---|")
+    for rel, name, mx, nb, n in rows[:args.top]:
+        print(f"| {name} | {n} | {nb:.3e} | {mx:.3e} | {rel:.3e}{' FAIL' if not rel <= args.tol else ''} |")
+    rels = [r[0] for r in rows]
+    if rows:
+        glob = math.sqrt(num_all / den_all) if den_all > 0 else math.sqrt(num_all)
+        print(f"{len(rows)} tensors compared: max rel {max(rels):.3e}, median {statistics.median(rels):.3e}, "
+              f"all gradients together {glob:.3e}; {len(over)} above tol {args.tol:g}")
+    if "loss" in meta_a and "loss" in meta_b:
+        la, lb = float(meta_a["loss"]), float(meta_b["loss"])
+        print(f"loss: {la:.9e} vs {lb:.9e} (relative difference {abs(la - lb) / max(abs(lb), 1e-300):.3e})")
+    for line in bad:
+        print(f"MISMATCH {line}")
+    if over or bad or not rows:
+        print(f"FAIL: {len(over)} tensors above tol {args.tol:g}, {len(bad)} missing or misshapen", file=sys.stderr)
+        sys.exit(1)
+    print(f"PASS: every gradient within relative L2 error {args.tol:g}")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -787,8 +1011,36 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--intrinsics", type=Path, required=True)
     p.set_defaults(func=cmd_inputs)
 
+    p = sub.add_parser("train-step", help="time training steps (pixl bench train-step protocol)")
+    p.add_argument("--weights", type=Path, default=None, help="a checkpoint; else --config with default init")
+    p.add_argument("--config", default="tiny", help="preset (tiny, small, paper) when no --weights")
+    p.add_argument("--size", default="256x256", help="crop WIDTHxHEIGHT")
+    p.add_argument("--batch", type=int, default=2)
+    p.add_argument("--warmups", type=int, default=2)
+    p.add_argument("--runs", type=int, default=5)
+    p.add_argument("--threads", type=int, default=torch.get_num_threads())
+    p.add_argument("--adamw", choices=["default", "foreach", "fused"], default="default",
+                   help="torch.optim.AdamW implementation (default: PyTorch's choice, per-tensor loop on CPU)")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(func=cmd_train_step)
+
+    p = sub.add_parser("grads", help="loss gradients of every parameter (float64 reference)")
+    p.add_argument("--weights", type=Path, required=True)
+    p.add_argument("--inputs", type=Path, required=True, help="safetensors with src, ct, tgt")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--dtype", choices=["f64", "f32"], default="f64")
+    p.add_argument("--threads", type=int, default=None)
+    p.set_defaults(func=cmd_grads)
+
+    p = sub.add_parser("compare-grads", help="per-tensor relative error of two gradient files")
+    p.add_argument("a", type=Path, help="the gradients checked (e.g. pixl's)")
+    p.add_argument("b", type=Path, help="the reference (e.g. torch f64)")
+    p.add_argument("--tol", type=float, default=1e-4)
+    p.add_argument("--top", type=int, default=10, help="rows printed, worst first")
+    p.set_defaults(func=cmd_compare_grads)
+
     args = ap.parse_args(argv)
-    if getattr(args, "threads", None) and args.cmd != "time":
+    if getattr(args, "threads", None) and args.cmd not in ("time", "train-step"):
         torch.set_num_threads(args.threads)
     args.func(args)
 

@@ -121,8 +121,15 @@ impl Conv {
         }
     }
 
-    /// candle's conv2d (bf16 widened to f32 on the CPU).
+    /// Training on the CPU in f32 (groups 1, dilation 1): [`pixl_nn::conv_grad::conv2d`], one op
+    /// with its own backward; otherwise candle's conv2d (bf16 widened to f32 on the CPU).
     fn forward_plain(&self, xs: &Tensor) -> Result<Tensor> {
+        let (w, b, cfg) = (self.0.weight(), self.0.bias(), self.0.config());
+        let trained = pixl_nn::needs_grad(&[xs, w]) || b.is_some_and(|b| b.track_op());
+        let f32_cpu = fused::cpu_f32(xs) && fused::cpu_f32(w) && b.is_none_or(fused::cpu_f32);
+        if trained && f32_cpu && cfg.groups == 1 && cfg.dilation == 1 {
+            return pixl_nn::conv_grad::conv2d(xs, w, b, cfg.stride, cfg.padding);
+        }
         let _t = pixl_nn::profile::span("conv (candle)");
         if xs.dtype() != DType::BF16 || !xs.device().is_cpu() {
             return self.0.forward(xs);

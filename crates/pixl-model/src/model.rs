@@ -103,10 +103,9 @@ impl PixlRelight {
         Modulation::apply(&src.to_dtype(DType::F32)?, &g, &b)
     }
 
-    /// `(1 + g) ⊙ I_S + b` **before** the clip, f32 `(B, 3, H, W)`. Training takes its pixel loss
-    /// on this: for a target in `[0, 1]`, `|clip(x) − t| ≤ |x − t|` with equality wherever `x ∈ [0, 1]`,
-    /// so the loss bounds the clipped one from above and has the same minimisers, but a pixel
-    /// pushed past 0 or 1 still receives a gradient instead of being stuck behind the clip.
+    /// `(1 + g) ⊙ I_S + b` **before** the clip, f32 `(B, 3, H, W)`: what training hands to its
+    /// loss, which applies the clip itself (`pixl_train::loss::loss`), so the loss sees the
+    /// clipped output and a pixel pushed past 0 or 1 passes no gradient (the paper's form).
     pub fn forward_unclipped(&self, src: &Tensor, ct: &Tensor) -> Result<Tensor> {
         let (g, b) = self.gain_bias(src, ct)?;
         Modulation::affine(&src.to_dtype(DType::F32)?, &g, &b)

@@ -108,6 +108,13 @@ impl ConvTransposeK {
     pub fn forward_rows(&self, rows: &Tensor, b: usize, h: usize, w: usize) -> Result<Tensor> {
         let _t = crate::profile::span("transposed conv");
         let (k, cout) = (self.k, self.bias.len());
+        let trained = crate::needs_grad(&[rows, &self.weight, &self.bias.tensor]);
+        if trained && [rows, &self.weight, &self.bias.tensor].into_iter().all(fused::cpu_f32) {
+            let cin = self.weight.dim(0)?;
+            let xs = rows.reshape((b, h, w, cin))?.permute((0, 3, 1, 2))?;
+            let weight = self.weight.reshape((cin, cout, k, k))?;
+            return crate::conv_grad::conv_transpose_k(&xs, &weight, Some(&self.bias.tensor));
+        }
         let ys = rows.matmul(&self.weight)?; // (B·h·w, cout·k·k)
         let ys = ys.reshape((b, h, w, cout, k, k))?.permute((0, 3, 1, 4, 2, 5))?;
         let ys = ys.contiguous()?.reshape((b, cout, h * k, w * k))?;

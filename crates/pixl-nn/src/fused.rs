@@ -419,12 +419,16 @@ pub(crate) fn act_in_place(out: &mut [f32], act: Act) {
 /// dims. With no gradient needed, on the CPU in f32: the output rows are filled with the bias,
 /// one parallel GEMM over all rows adds `xs · Wᵀ` to them in place (reading `W` as stored, no
 /// transposed copy), and the activation runs in place, so the output is the only buffer written.
-/// Otherwise (training, other devices or dtypes): candle's `Linear`, then the activation,
-/// differentiable.
+/// Training on the CPU in f32: [`crate::linear_grad::linear`] (one op with its own backward).
+/// Otherwise (other devices or dtypes): candle's `Linear`, then the activation, differentiable.
 pub fn linear(xs: &Tensor, layer: &candle_nn::Linear, act: Act) -> Result<Tensor> {
     let (w, b) = (layer.weight(), layer.bias());
     let grad = crate::needs_grad(&[xs, w]) || b.is_some_and(|b| b.track_op());
-    if grad || !cpu_f32(xs) || !cpu_f32(w) || b.is_some_and(|b| !cpu_f32(b)) {
+    let all_f32 = cpu_f32(xs) && cpu_f32(w) && b.is_none_or(cpu_f32);
+    if grad && all_f32 && matches!(act, Act::None | Act::Relu | Act::Gelu) {
+        return crate::linear_grad::linear(xs, w, b, act);
+    }
+    if grad || !all_f32 {
         return act.apply_tensor(candle_core::Module::forward(layer, xs)?);
     }
     let dims = xs.dims();
@@ -823,13 +827,18 @@ pub fn attention_qkv(qkv: &Tensor, heads: usize) -> Result<Tensor> {
 
 /// [`attention_qkv`] with queries and keys rotated by `rope = (tables, prefix)`: tokens
 /// `prefix..N` by the tables' rows (the first `prefix` tokens, registers, unrotated). On the CPU
-/// in f32 the head split and the rotation are one parallel pass.
+/// in f32 the head split and the rotation are one parallel pass; with a gradient, the whole
+/// attention is one op with its own backward ([`crate::attention_grad::qkv_attention`]).
 pub fn attention_qkv_rope(qkv: &Tensor, heads: usize, rope: Option<(&crate::Rope2d, usize)>) -> Result<Tensor> {
     let (b, n, c3) = qkv.dims3()?;
     if c3 % (3 * heads) != 0 {
         candle_core::bail!("qkv width {c3} is not 3 × {heads} heads");
     }
     let d = c3 / (3 * heads);
+    let tables_f32 = rope.is_none_or(|(r, _)| cpu_f32(&r.cos) && cpu_f32(&r.sin));
+    if cpu_f32(qkv) && crate::needs_grad(&[qkv]) && tables_f32 {
+        return crate::attention_grad::qkv_attention(qkv, heads, rope);
+    }
     let split = crate::profile::span("qkv split + RoPE, head merge");
     let (q, k, v) = if cpu_f32(qkv) && !crate::needs_grad(&[qkv]) {
         let tables = match rope {

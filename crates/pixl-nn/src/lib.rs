@@ -20,6 +20,10 @@
 //! - [`dwconv`] — depthwise k×k convolution with its own forward and backward kernels.
 //! - [`attention`] — multi-head scaled-dot-product attention (a fused, blocked CPU kernel for
 //!   inference).
+//! - [`conv_grad`], [`attention_grad`], [`norm_grad`], [`linear_grad`] — the training kernels:
+//!   convolutions (and the stride-k transposed one), multi-head attention on fused qkv with RoPE,
+//!   layer norm, and linear + bias + activation, each one candle op with its own CPU backward
+//!   (f32; other devices and dtypes take the composed path).
 //! - [`fastmath`] — vectorisable `exp`, row softmax, `erf` and GELU for the CPU kernels.
 //! - [`fused`] — parallel fused bias/activation/residual/norm passes, a fused `Linear` and 1×1
 //!   convolution (GEMMs in place over bias-filled outputs), the qkv head split with RoPE, and
@@ -30,16 +34,20 @@
 //! - [`profile`] — wall time by operation kind, off unless switched on.
 //! - [`testing`] — seeded test tensors and an f64 finite-difference gradient check.
 pub mod attention;
+pub mod attention_grad;
 pub mod backbones;
 pub mod conv3x3;
+pub mod conv_grad;
 pub mod dpt;
 pub mod dwconv;
 pub mod fastmath;
 pub mod fused;
 pub mod int8;
 pub mod linear;
+pub mod linear_grad;
 pub mod mlp;
 pub mod norm;
+pub mod norm_grad;
 pub mod ops;
 pub mod profile;
 pub mod rope;

@@ -34,12 +34,16 @@ impl Module for LayerNorm {
 /// Fast path (no gradient, f32/f16/bf16): candle's fused kernel, which accumulates in f32 and
 /// computes the variance as `E[x²] − E[x]²` (fine unless `|mean| ≫ std`, ~1e3×). f64 inputs
 /// always take the composed path, which keeps full f64 precision (candle's kernel would round to
-/// f32). Differentiable path: composed candle ops, statistics in f32 (f64 for f64 inputs).
+/// f32). Differentiable path: on the CPU in f32 one fused op with its own backward
+/// ([`crate::norm_grad`]); elsewhere composed candle ops, statistics in f32 (f64 for f64 inputs).
 pub fn layer_norm(xs: &Tensor, w: &Tensor, b: &Tensor, eps: f64) -> Result<Tensor> {
     let _t = crate::profile::span("layer norm");
     let fast_dtype = matches!(xs.dtype(), DType::F32 | DType::F16 | DType::BF16);
     if !crate::needs_grad(&[xs, w, b]) && fast_dtype {
         return candle_nn::ops::layer_norm(&xs.contiguous()?, &w.contiguous()?, &b.contiguous()?, eps as f32);
+    }
+    if [xs, w, b].into_iter().all(crate::fused::cpu_f32) {
+        return crate::norm_grad::layer_norm(xs, w, b, eps);
     }
     let dtype = xs.dtype();
     let xs = if dtype == DType::F64 {
