@@ -111,6 +111,7 @@ pixl completions zsh > ~/.zfunc/_pixl\n  pixl completions fish > ~/.config/fish/
 }
 
 fn main() -> ExitCode {
+    pixl_nn::prefer_rayon_pool();
     let cli = Cli::parse();
     ctx::install_signal_handler();
     init_logging(cli.quiet);

@@ -107,8 +107,8 @@ impl PixlRelight {
     /// loss, which applies the clip itself (`pixl_train::loss::loss`), so the loss sees the
     /// clipped output and a pixel pushed past 0 or 1 passes no gradient (the paper's form).
     pub fn forward_unclipped(&self, src: &Tensor, ct: &Tensor) -> Result<Tensor> {
-        let (g, b) = self.gain_bias(src, ct)?;
-        Modulation::affine(&src.to_dtype(DType::F32)?, &g, &b)
+        let gb = self.modulation.gain_bias_stacked(&self.padded_features(src, ct)?)?;
+        crate::modulation::affine_padded(&src.to_dtype(DType::F32)?, &gb)
     }
 
     /// The unclipped gain and bias maps `(B, 3, H, W)` each, f32 (for inspection and tests).
@@ -202,8 +202,14 @@ impl PixlRelight {
     /// The outputs of the four readout blocks (in `trunk().readouts()` order) → the unclipped
     /// prediction `(1 + g) ⊙ I_S + b`, f32 `(B, 3, H, W)`, as [`Self::forward_unclipped`].
     pub fn tail_unclipped(&self, readout_blocks: &[Tensor], src: &Tensor, p: &Prepared) -> Result<Tensor> {
-        let (g, bias) = self.tail_gain_bias(readout_blocks, p)?;
-        Modulation::affine(&src.to_dtype(DType::F32)?, &g, &bias)
+        let readouts = readout_blocks
+            .iter()
+            .map(|xs| self.trunk.readout(xs, &p.grid))
+            .collect::<Result<Vec<_>>>()?;
+        let gb = self
+            .modulation
+            .gain_bias_stacked(&self.head.forward(&readouts, p.ph, p.pw)?)?;
+        crate::modulation::affine_padded(&src.to_dtype(DType::F32)?, &gb)
     }
 
     /// The outputs of the four readout blocks → the gain and bias maps `(B, 3, H, W)` f32,

@@ -5,9 +5,12 @@
 //! (defaults: small 256 256 2 3). Each part's forward runs on a detached `Var` input; its
 //! backward propagates `Σ out ⊙ G` for a fixed random `G`. Parts: the patch embedding, the source
 //! encoder's blocks, the intrinsics (ConvNeXt) encoder, the fusion, the trunk's blocks and the
-//! tail (readout norms, DPT head, modulation, L1 loss). Medians over RUNS.
+//! tail (readout norms, DPT head, modulation, L1 loss). Medians over RUNS; then the time of the
+//! last run by op kind (`pixl_nn::profile` spans; the rest is candle's own ops and its gradient
+//! bookkeeping).
 use candle_core::{Tensor, Var};
 use pixl_model::Config;
+use pixl_train::loss::Objective;
 use std::time::Instant;
 
 fn rand(shape: &[usize], seed: u64) -> candle_core::Result<Tensor> {
@@ -59,10 +62,21 @@ fn main() -> anyhow::Result<()> {
     let src = rand(&[b, 3, h, w], 1)?;
     let ct = rand(&[b, 9, h, w], 2)?;
     let tgt = rand(&[b, 3, h, w], 3)?;
-    let names = ["embed", "src blocks", "convnext", "fuse", "trunk blocks", "tail"];
+    let names = [
+        "embed",
+        "src blocks",
+        "convnext",
+        "fuse",
+        "trunk blocks",
+        "tail",
+        "(affine+loss)",
+    ];
     let mut fwd = vec![vec![]; names.len()];
     let mut bwd = vec![vec![]; names.len()];
-    for _ in 0..runs + 1 {
+    for run in 0..runs + 1 {
+        // Op-kind spans over the timed runs (the first run warms up).
+        pixl_nn::profile::take();
+        pixl_nn::profile::enable(run > 0);
         let p = model.prepare(&src, &ct)?;
         let mut rec = |i: usize, r: (f64, f64, Tensor)| {
             fwd[i].push(r.0);
@@ -104,21 +118,41 @@ fn main() -> anyhow::Result<()> {
         let lt: Vec<Tensor> = leaves.iter().map(|v| v.as_tensor().clone()).collect();
         let t0 = Instant::now();
         let pred = model.tail_unclipped(&lt, &src, &p)?;
-        let loss = (pred - &tgt)?.abs()?.mean_all()?;
+        let loss = |pred: &Tensor| pixl_train::loss::loss(pred, &tgt, &Objective::l1_only());
+        let total = loss(&pred)?.total;
         let t1 = Instant::now();
-        let _store = loss.backward()?;
+        let _store = total.backward()?;
         let t2 = Instant::now();
         fwd[5].push((t1 - t0).as_secs_f64() * 1e3);
         bwd[5].push((t2 - t1).as_secs_f64() * 1e3);
+        // The modulation's affine step and the loss alone (inside the tail above).
+        let (g, b) = model.tail_gain_bias(&lt, &p)?;
+        let (g, b) = (Var::from_tensor(&g.detach())?, Var::from_tensor(&b.detach())?);
+        let t0 = Instant::now();
+        let pred = pixl_model::modulation::Modulation::affine(&src, g.as_tensor(), b.as_tensor())?;
+        let total = loss(&pred)?.total;
+        let t1 = Instant::now();
+        let _store = total.backward()?;
+        let t2 = Instant::now();
+        fwd[6].push((t1 - t0).as_secs_f64() * 1e3);
+        bwd[6].push((t2 - t1).as_secs_f64() * 1e3);
     }
     println!("{:<14} {:>10} {:>10}", "part", "fwd ms", "bwd ms");
     let (mut tf, mut tb) = (0.0, 0.0);
     for (i, n) in names.iter().enumerate() {
         let (f, bw) = (median(fwd[i][1..].to_vec()), median(bwd[i][1..].to_vec()));
-        tf += f;
-        tb += bw;
+        if i < 6 {
+            tf += f;
+            tb += bw;
+        }
         println!("{n:<14} {f:>10.1} {bw:>10.1}");
     }
     println!("{:<14} {tf:>10.1} {tb:>10.1}", "total");
+    let mut kinds = pixl_nn::profile::take();
+    kinds.sort_by(|a, b| b.1.total_cmp(&a.1));
+    println!("\nop kind (last run)                   ms  calls");
+    for (kind, secs, calls) in kinds {
+        println!("{kind:<34} {:>7.1} {calls:>6}", secs * 1e3);
+    }
     Ok(())
 }

@@ -7,7 +7,7 @@
 //!   averaged over the five taps with equal weight. The VGG weights are frozen (loaded as
 //!   constants, never `Var`s), so only the network receives gradients.
 use crate::error::{Result, TrainError};
-use candle_core::{DType, Device, Tensor};
+use candle_core::{CpuStorage, CustomOp2, DType, Device, Layout, Shape, Tensor};
 use pixl_nn::backbones::{imagenet_normalize, Vgg16};
 use std::path::Path;
 
@@ -89,11 +89,17 @@ impl Objective<'_> {
 /// above and keeps a gradient on saturated pixels) measured no better (`BENCHMARKS.md`, training
 /// step section), so the paper's form is the only one.
 pub fn loss(pred: &Tensor, target: &Tensor, objective: &Objective) -> Result<LossTerms> {
-    let clipped = pred.clamp(0f32, 1f32)?;
-    let l1 = (&clipped - target)?.abs()?.mean_all()?;
+    let perceptual = objective.perceptual.filter(|_| objective.weight > 0.0);
+    let l1 = if perceptual.is_none() && cpu_f32(pred) && cpu_f32(target) && pred.dims() == target.dims() {
+        pred.contiguous()?
+            .apply_op2(&target.detach().contiguous()?, ClippedL1)?
+    } else {
+        (&pred.clamp(0f32, 1f32)? - target)?.abs()?.mean_all()?
+    };
     let l1_value = l1.to_scalar::<f32>()?;
-    match objective.perceptual {
-        Some(p) if objective.weight > 0.0 => {
+    match perceptual {
+        Some(p) => {
+            let clipped = pred.clamp(0f32, 1f32)?;
             let d = p.distance(&clipped, target)?;
             let d_value = d.to_scalar::<f32>()?;
             Ok(LossTerms {
@@ -110,10 +116,142 @@ pub fn loss(pred: &Tensor, target: &Tensor, objective: &Objective) -> Result<Los
     }
 }
 
+fn cpu_f32(t: &Tensor) -> bool {
+    t.device().is_cpu() && t.dtype() == DType::F32
+}
+
+/// `mean |clip(pred, 0, 1) − target|` as one CPU op (arguments `(pred, target)`, contiguous
+/// f32, same shape), summed in f64; its backward is candle's composition's:
+/// `sign(clip(p) − t) / n` (+1 at 0) times the clamp's derivative (1 inside `(0, 1)`, ½ at
+/// exactly 0 or 1, 0 outside), nothing for the target.
+struct ClippedL1;
+
+fn f32s<'a>(s: &'a CpuStorage, l: &Layout) -> candle_core::Result<&'a [f32]> {
+    match (s, l.contiguous_offsets()) {
+        (CpuStorage::F32(v), Some((a, b))) => Ok(&v[a..b]),
+        _ => candle_core::bail!("L1 loss: expected contiguous f32 tensors"),
+    }
+}
+
+impl CustomOp2 for ClippedL1 {
+    fn name(&self) -> &'static str {
+        "clipped-l1"
+    }
+
+    fn cpu_fwd(
+        &self,
+        ps: &CpuStorage,
+        pl: &Layout,
+        ts: &CpuStorage,
+        tl: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (p, t) = (f32s(ps, pl)?, f32s(ts, tl)?);
+        let sum: f64 = p
+            .iter()
+            .zip(t)
+            .map(|(&p, &t)| (p.clamp(0.0, 1.0) - t).abs() as f64)
+            .sum();
+        let mean = if p.is_empty() {
+            f32::NAN
+        } else {
+            (sum / p.len() as f64) as f32
+        };
+        Ok((CpuStorage::F32(vec![mean]), Shape::from(())))
+    }
+
+    fn bwd(
+        &self,
+        pred: &Tensor,
+        target: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Option<Tensor>, Option<Tensor>)> {
+        let scale = grad.to_dtype(DType::F32)?.to_scalar::<f32>()?;
+        let d = pred.apply_op2_no_bwd(target, &ClippedL1Grad { scale })?;
+        Ok((Some(d), None))
+    }
+}
+
+/// The backward of [`ClippedL1`], times the incoming scalar gradient `scale`.
+struct ClippedL1Grad {
+    scale: f32,
+}
+
+impl CustomOp2 for ClippedL1Grad {
+    fn name(&self) -> &'static str {
+        "clipped-l1-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        ps: &CpuStorage,
+        pl: &Layout,
+        ts: &CpuStorage,
+        tl: &Layout,
+    ) -> candle_core::Result<(CpuStorage, Shape)> {
+        let (p, t) = (f32s(ps, pl)?, f32s(ts, tl)?);
+        let k = self.scale / p.len().max(1) as f32;
+        let out = p
+            .iter()
+            .zip(t)
+            .map(|(&p, &t)| {
+                let inside = if p > 0.0 && p < 1.0 {
+                    1.0
+                } else if p == 0.0 || p == 1.0 {
+                    0.5
+                } else {
+                    0.0
+                };
+                let d = p.clamp(0.0, 1.0) - t;
+                // candle's |·|′: +1 at exactly 0.
+                let sign = if d >= 0.0 { 1.0 } else { -1.0 };
+                k * sign * inside
+            })
+            .collect();
+        Ok((CpuStorage::F32(out), pl.shape().clone()))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use candle_core::Var;
+
+    /// The fused CPU op against candle's composed clamp/sub/abs/mean on the same values, value
+    /// and gradient, with pixels outside, inside and exactly on the clip bounds and ties with
+    /// the target.
+    #[test]
+    fn fused_clipped_l1_equals_the_composed_ops() {
+        let dev = Device::Cpu;
+        let mut p: Vec<f32> = (0..60).map(|i| (i as f32 * 0.377).sin() * 1.4 + 0.3).collect();
+        let t: Vec<f32> = (0..60).map(|i| (i as f32 * 0.91).cos() * 0.5 + 0.5).collect();
+        (p[0], p[1], p[2], p[3]) = (0.0, 1.0, t[2], t[3].clamp(0.0, 1.0));
+        let x = Var::from_vec(p, (1, 3, 4, 5), &dev).unwrap();
+        let t = Tensor::from_vec(t, (1, 3, 4, 5), &dev).unwrap();
+        let fused = loss(x.as_tensor(), &t, &Objective::l1_only()).unwrap();
+        let composed = (&x.as_tensor().clamp(0f32, 1f32).unwrap() - &t)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .mean_all()
+            .unwrap();
+        let want = composed.to_scalar::<f32>().unwrap();
+        assert!((fused.l1 - want).abs() < 1e-6, "{} vs {want}", fused.l1);
+        let grad = |total: &Tensor| -> Vec<f32> {
+            let store = (total * 3.0).unwrap().backward().unwrap();
+            store
+                .get(x.as_tensor())
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap()
+        };
+        // Same signs and masks; the scale 1/n rounds differently.
+        for (a, b) in grad(&fused.total).iter().zip(grad(&composed)) {
+            assert!((a - b).abs() <= 1e-6 * b.abs().max(1e-3), "{a} vs {b}");
+        }
+    }
 
     /// Pixels pushed past the clip get exactly no gradient (the paper's form), the others
     /// `sign(x − t)/n`; the value is the L1 of the clipped output.
