@@ -102,7 +102,11 @@ impl Conv {
         if let Some(ys) = self.forward_conv3x3(xs, input_relu, residual, act)? {
             return Ok(ys);
         }
-        let xs = if input_relu { xs.relu()? } else { xs.clone() };
+        let xs = if input_relu {
+            pixl_nn::ops::relu(xs)?
+        } else {
+            xs.clone()
+        };
         if residual.is_none() {
             if let Some(ys) = self.forward_conv1x1(&xs, act)? {
                 return Ok(ys);
@@ -115,7 +119,7 @@ impl Conv {
         };
         match act {
             Act::None => Ok(ys),
-            Act::Relu => ys.relu(),
+            Act::Relu => pixl_nn::ops::relu(&ys),
             Act::Gelu => ys.gelu_erf(),
             Act::Silu => candle_nn::ops::silu(&ys),
         }

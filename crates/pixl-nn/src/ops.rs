@@ -4,6 +4,7 @@
 //!   `exp(x − max) / Σ exp(x − max)` from candle primitives (the max is detached: softmax is
 //!   shift-invariant, so this does not change the gradient).
 //! - [`gelu`]: exact erf form, differentiable everywhere.
+//! - [`relu`]: with a one-pass backward on the CPU.
 //! - [`resize_bilinear`]: PyTorch `F.interpolate(mode="bilinear", align_corners=False)`.
 use candle_core::{DType, Device, Result, Tensor, D};
 use rayon::prelude::*;
@@ -17,6 +18,76 @@ pub fn softmax_last_dim(xs: &Tensor) -> Result<Tensor> {
     let e = xs.broadcast_sub(&max)?.exp()?;
     e.broadcast_div(&e.sum_keepdim(D::Minus1)?)
 }
+
+/// `max(x, 0)`. On the CPU in f32 with a gradient: one op whose backward is one pass,
+/// `grad ⊙ [x ≥ 0]` (candle's convention at 0), instead of candle's compare, cast and multiply;
+/// otherwise candle's `relu`.
+pub fn relu(xs: &Tensor) -> Result<Tensor> {
+    if crate::fused::cpu_f32(xs) && crate::needs_grad(&[xs]) {
+        return xs.contiguous()?.apply_op1(Relu);
+    }
+    xs.relu()
+}
+
+/// [`relu`]'s CPU op; its backward is [`ReluGrad`] on `(grad, x)`.
+struct Relu;
+
+impl candle_core::CustomOp1 for Relu {
+    fn name(&self) -> &'static str {
+        "relu"
+    }
+
+    fn cpu_fwd(
+        &self,
+        s: &candle_core::CpuStorage,
+        l: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let x = crate::fused::slice(s, l, self.name())?;
+        let mut out = vec![0f32; x.len()];
+        out.par_chunks_mut(ELEMENTWISE_CHUNK)
+            .zip(x.par_chunks(ELEMENTWISE_CHUNK))
+            .for_each(|(o, x)| o.iter_mut().zip(x).for_each(|(o, &x)| *o = x.max(0.0)));
+        Ok((candle_core::CpuStorage::F32(out), l.shape().clone()))
+    }
+
+    fn bwd(&self, arg: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
+        Ok(Some(grad.contiguous()?.apply_op2_no_bwd(arg, &ReluGrad)?))
+    }
+}
+
+/// `grad ⊙ [x ≥ 0]` for `(grad, x)`.
+struct ReluGrad;
+
+impl candle_core::CustomOp2 for ReluGrad {
+    fn name(&self) -> &'static str {
+        "relu-grad"
+    }
+
+    fn cpu_fwd(
+        &self,
+        gs: &candle_core::CpuStorage,
+        gl: &candle_core::Layout,
+        xs: &candle_core::CpuStorage,
+        xl: &candle_core::Layout,
+    ) -> Result<(candle_core::CpuStorage, candle_core::Shape)> {
+        let (g, x) = (
+            crate::fused::slice(gs, gl, self.name())?,
+            crate::fused::slice(xs, xl, self.name())?,
+        );
+        let mut out = vec![0f32; g.len()];
+        out.par_chunks_mut(ELEMENTWISE_CHUNK)
+            .zip(g.par_chunks(ELEMENTWISE_CHUNK).zip(x.par_chunks(ELEMENTWISE_CHUNK)))
+            .for_each(|(o, (g, x))| {
+                for ((o, &g), &x) in o.iter_mut().zip(g).zip(x) {
+                    *o = if x >= 0.0 { g } else { 0.0 };
+                }
+            });
+        Ok((candle_core::CpuStorage::F32(out), gl.shape().clone()))
+    }
+}
+
+/// Values per parallel task of the elementwise ops here.
+const ELEMENTWISE_CHUNK: usize = 1 << 15;
 
 /// GELU, exact (erf) form, as PyTorch's default `nn.GELU()`.
 pub fn gelu(xs: &Tensor) -> Result<Tensor> {

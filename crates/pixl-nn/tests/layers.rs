@@ -278,6 +278,28 @@ fn resize_f32_training_path_matches_the_f64_matrix_path() -> Result<()> {
 }
 
 #[test]
+fn relu_training_op_equals_candles_relu() -> Result<()> {
+    // Values and the gradient of Σ relu(x) ⊙ G against candle's relu, exact zeros included
+    // (both pass the gradient at 0).
+    let x = uniform((2, 3, 5, 7), -1.0, 1.0, 31, &cpu())?.to_dtype(DType::F32)?;
+    let vals: Vec<f32> = x.flatten_all()?.to_vec1::<f32>()?;
+    let vals: Vec<f32> = vals.into_iter().map(|v| if v < -0.5 { 0.0 } else { v }).collect();
+    assert!(vals.contains(&0.0));
+    let x = Tensor::from_vec(vals, (2, 3, 5, 7), &cpu())?;
+    let g = uniform((2, 3, 5, 7), -1.0, 1.0, 32, &cpu())?.to_dtype(DType::F32)?;
+    let v = candle_core::Var::from_tensor(&x)?;
+    let run = |y: Tensor| -> Result<(Tensor, Tensor)> {
+        let store = (&y * &g)?.sum_all()?.backward()?;
+        Ok((y, store.get(v.as_tensor()).expect("gradient").clone()))
+    };
+    let (y1, d1) = run(pixl_nn::ops::relu(v.as_tensor())?)?;
+    let (y2, d2) = run(v.as_tensor().relu()?)?;
+    assert_eq!(max_abs_diff(&y1, &y2)?, 0.0);
+    assert_eq!(max_abs_diff(&d1, &d2)?, 0.0);
+    Ok(())
+}
+
+#[test]
 fn rope_hand_value_and_identity_at_origin() -> Result<()> {
     // head_dim 4: one frequency (base⁰ = 1); dims (0,1) rotate by y, (2,3) by x.
     let rope = Rope2d::new(4, 2, 3, 100.0, &cpu())?;
