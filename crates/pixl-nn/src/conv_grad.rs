@@ -17,9 +17,9 @@
 //! contiguous copies where an argument was strided) and its output.
 //!
 //! On the CPU with f32 or f64 operands of one dtype (any strides: they are made contiguous) the
-//! work is GEMMs (the `gemm` crate) over tiles of about 256 output pixels, tiles in parallel on
-//! rayon's pool with single-threaded GEMMs (a GEMM parallel over the pool when there are fewer
-//! tiles than threads), accumulating in the operands' type:
+//! work is GEMMs (the `gemm` crate), except for narrow f32 layers (below), over tiles of about 256
+//! output pixels, tiles in parallel on rayon's pool with single-threaded GEMMs (a GEMM parallel
+//! over the pool when there are fewer tiles than threads), accumulating in the operands' type:
 //! - forward: per tile of one image, an im2col matrix `(Cin·kh·kw, t)` (rows `(c, u, v)`, so the
 //!   weight is read as `(Cout, Cin·kh·kw)` as it is) times the weight, written in place into the
 //!   channels-first output over the bias. 1×1 stride-1 convolutions read the input directly;
@@ -38,6 +38,35 @@
 //!   overlap); its input gradient is the forward convolution of `gy` with stride `k`, its weight
 //!   gradient the weight-gradient kernel with the roles of input and output gradient swapped.
 //!
+//! Narrow f32 layers take direct kernels instead, on x86-64 CPUs with AVX2 and FMA or with
+//! AVX-512F (register tiles written with `std::arch` intrinsics for both, chosen at run time):
+//! passes with at most 64 outputs per pixel over at most 1024 taps `(c, u, v)`, 1×1 forward
+//! passes with at most 128 input channels (the direct kernels do not block the sum over them),
+//! weight gradients whose output channels fill at least half of their vector lanes (or with at
+//! most 64 taps), and strided input gradients whose column matrix has at most 2¹⁴ values per
+//! image (`examples/bench_conv_grad`, `tiny` group, 2 threads: 1.35× less kernel time in all,
+//! 2–6× on the smallest layers; the largest are 1.3–1.9× faster alone, less in a training step,
+//! where first touches of fresh output pages take much of their time).
+//! - forward pass, and the stride-1 input gradient (the same convolution of `gy`, flipped weight):
+//!   at stride 1 on outputs of at least 64 pixels, vectors of output positions: input rows are
+//!   read in `Wp = W + 2p` wide zero-padded planes (the image itself when unpadded), each of 4
+//!   output channels' vectors summing `w·x` over the taps at shifted offsets (the `kw − 1`
+//!   positions past each output row are computed and dropped), stored straight into the output
+//!   when none is dropped; otherwise (strides above 1, small images) vectors of output channels:
+//!   each pixel's `Cout` values sum the input value broadcast times the weight's row of the tap,
+//!   then are transposed into the output;
+//! - weight gradient: vectors of output channels too, `gwᵀ[tap] += x[tap][pixel]·gy[pixel]` over
+//!   a unit's pixels (its output gradient copied pixel-major) in registers, then added into one
+//!   accumulator per worker;
+//! - input gradient at strides above 1: each output pixel's columns `Σ_o gy[o]·w[o]` (vectors over
+//!   the taps), then added into the input planes.
+//!
+//! A direct pass splits into units of output rows of one image, or of several whole small images;
+//! units run on rayon's pool when the pass has at least 2²¹ multiply-adds (two units per thread at
+//! least), else on the calling thread; scratch is a per-thread buffer kept from call to call, and
+//! outputs are written once without being zeroed first (except the strided input gradient's, whose
+//! sums overlap). [`set_direct_kernels`] turns the direct kernels off process-wide, for comparing.
+//!
 //! 3×3, stride-1, padding-1 f32 passes (the forward pass, and the input gradient, which is the
 //! same convolution with the channel counts swapped) on images that
 //! [suit](crate::winograd::suits) Winograd (64×64 pixels and up) with at least 64 channels in
@@ -50,6 +79,7 @@
 //! Everything else (f16/bf16, mixed dtypes, CUDA/Metal) falls back to candle's own
 //! `conv2d` / `conv_transpose2d` plus a broadcast bias add ([`conv2d_candle`],
 //! [`conv_transpose_k_candle`]), whose backward candle provides.
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 use candle_core::backend::BackendStorage;
@@ -239,6 +269,11 @@ impl Geom {
     fn out_dims(&self) -> [usize; 4] {
         [self.b, self.cout, self.ho, self.wo]
     }
+
+    /// Multiply-adds of one pass (the forward pass, or either gradient).
+    fn macs(&self) -> usize {
+        self.b * self.cout * self.krows() * self.out_plane()
+    }
 }
 
 /// The geometry of `conv2d(x, w, b, stride, padding)`, checking that the shapes agree.
@@ -272,10 +307,58 @@ fn transpose_geom(x: &Shape, w: &Shape, b: Option<&Shape>) -> Result<Geom> {
     Geom::new(bsz, cout, (k * h, k * wd), cin, (k, k), k, (0, 0))
 }
 
-/// The float types of the CPU kernels (the `gemm` crate's real types).
-trait Float: WithDType {}
-impl Float for f32 {}
+/// The float types of the CPU kernels (the `gemm` crate's real types), with the passes for
+/// them: GEMMs, and for f32 the direct kernels where they fit.
+trait Float: WithDType {
+    /// The forward convolution (see [`conv_forward`]).
+    fn forward(x: &[Self], w: &[Self], bias: Option<&[Self]>, g: &Geom) -> Vec<Self> {
+        conv_forward(x, w, bias, g)
+    }
+
+    /// The weight gradient (see [`conv_weight_grad`]).
+    fn weight_grad(x: &[Self], gy: &[Self], g: &Geom) -> Vec<Self> {
+        conv_weight_grad(x, gy, g)
+    }
+
+    /// The input gradient (see [`conv_input_grad`]).
+    fn input_grad(gy: &[Self], w: &[Self], g: &Geom) -> Result<Vec<Self>> {
+        conv_input_grad(gy, w, g)
+    }
+}
+
 impl Float for f64 {}
+
+impl Float for f32 {
+    fn forward(x: &[f32], w: &[f32], bias: Option<&[f32]>, g: &Geom) -> Vec<f32> {
+        match Isa::detect() {
+            Some(isa) if direct_fwd_fits(g) => direct_forward(x, w, bias, g, isa),
+            _ => conv_forward(x, w, bias, g),
+        }
+    }
+
+    fn weight_grad(x: &[f32], gy: &[f32], g: &Geom) -> Vec<f32> {
+        match Isa::detect() {
+            Some(isa) if direct_wgrad_fits(g, isa) => direct_weight_grad(x, gy, g, isa),
+            _ => conv_weight_grad(x, gy, g),
+        }
+    }
+
+    fn input_grad(gy: &[f32], w: &[f32], g: &Geom) -> Result<Vec<f32>> {
+        let Some(isa) = Isa::detect() else {
+            return conv_input_grad(gy, w, g);
+        };
+        match back_geom(g)? {
+            Some(back) if direct_fwd_fits(&back) => {
+                let flipped = flip_weight(w, g.cout, g.cin, g.kh, g.kw);
+                Ok(direct_forward(gy, &flipped, None, &back, isa))
+            }
+            None if direct_fits(g.cout, g.krows()) && g.out_plane() * g.krows() <= COL2IM_DIRECT_MAX => {
+                Ok(direct_col2im(gy, w, g, isa))
+            }
+            _ => conv_input_grad(gy, w, g),
+        }
+    }
+}
 
 /// The values of a contiguous CPU storage of type `T`.
 fn data<'a, T: Float>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [T]> {
@@ -792,29 +875,1147 @@ fn flip_weight<T: Float>(wt: &[T], cout: usize, cin: usize, kh: usize, kw: usize
 /// The input gradient of the convolution `g`: `gy (B, Cout, Ho, Wo)`, `wt (Cout, Cin, kh, kw)` →
 /// `(B, Cin, H, W)`.
 fn conv_input_grad<T: Float>(gy: &[T], wt: &[T], g: &Geom) -> Result<Vec<T>> {
-    if g.s == 1 && g.ph < g.kh && g.pw < g.kw {
-        let flipped = flip_weight(wt, g.cout, g.cin, g.kh, g.kw);
-        let back = Geom::new(
-            g.b,
-            g.cout,
-            (g.ho, g.wo),
-            g.cin,
-            (g.kh, g.kw),
-            1,
-            (g.kh - 1 - g.ph, g.kw - 1 - g.pw),
-        )?;
-        if (back.ho, back.wo) != (g.h, g.w) {
-            candle_core::bail!(
-                "conv2d input gradient: {}x{} from a {}x{} input",
-                back.ho,
-                back.wo,
-                g.h,
-                g.w
+    match back_geom(g)? {
+        Some(back) => Ok(conv_forward(
+            gy,
+            &flip_weight(wt, g.cout, g.cin, g.kh, g.kw),
+            None,
+            &back,
+        )),
+        None => Ok(col2im_conv(gy, wt, None, g)),
+    }
+}
+
+/// At stride 1 (`p < k`), the convolution whose forward pass with the [flipped](flip_weight)
+/// weight is the input gradient of `g`: `gy (B, Cout, Ho, Wo)` → `(B, Cin, H, W)`, padding
+/// `k − 1 − p`; `None` for the other convolutions (col2im).
+fn back_geom(g: &Geom) -> Result<Option<Geom>> {
+    if !(g.s == 1 && g.ph < g.kh && g.pw < g.kw) {
+        return Ok(None);
+    }
+    let back = Geom::new(
+        g.b,
+        g.cout,
+        (g.ho, g.wo),
+        g.cin,
+        (g.kh, g.kw),
+        1,
+        (g.kh - 1 - g.ph, g.kw - 1 - g.pw),
+    )?;
+    if (back.ho, back.wo) != (g.h, g.w) {
+        candle_core::bail!(
+            "conv2d input gradient: {}x{} from a {}x{} input",
+            back.ho,
+            back.wo,
+            g.h,
+            g.w
+        );
+    }
+    Ok(Some(back))
+}
+
+// Direct kernels for narrow f32 layers (see the module docs).
+
+/// Output channels per register block of the position-vector forward kernel.
+const FWD_R: usize = 4;
+/// Output positions (padded-width coordinates) per unit of the position-vector forward pass.
+const FWD_UNIT_POSITIONS: usize = 2048;
+/// Output pixels per unit of the channel-vector forward pass and of the weight gradient.
+const PIX_UNIT: usize = 1024;
+/// Input values a unit's copied rows hold at most (256 KiB, a quarter of a Zen 4 core's L2).
+const BAND_VALUES: usize = 1 << 16;
+/// Output pixels per block of the channel-vector input gradient.
+const COL2IM_PIXELS: usize = 128;
+/// Multiply-adds below which a direct pass runs on the calling thread (a rayon dispatch costs
+/// 20–40 µs on the 2-core machine `examples/bench_conv_grad` was tuned on).
+const PAR_MIN_MACS: usize = 2 << 20;
+
+/// Whether f32 passes may take the direct kernels (see [`set_direct_kernels`]).
+static DIRECT_KERNELS: AtomicBool = AtomicBool::new(true);
+
+/// Lets f32 passes take the direct kernels for narrow layers (`true`, the default) or keeps
+/// every pass on the GEMM path (`false`), process-wide: for comparing the two
+/// (`examples/bench_conv_grad`).
+pub fn set_direct_kernels(on: bool) {
+    DIRECT_KERNELS.store(on, Ordering::Relaxed);
+}
+
+/// The vector instruction set the direct kernels are compiled for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Isa {
+    /// AVX-512F: 16 f32 lanes.
+    #[cfg(target_arch = "x86_64")]
+    Avx512,
+    /// AVX2 with FMA: 8 f32 lanes.
+    #[cfg(target_arch = "x86_64")]
+    Avx2,
+}
+
+impl Isa {
+    /// The widest the CPU has, `None` without AVX2 and FMA (the direct kernels are then unused).
+    fn detect() -> Option<Self> {
+        if !DIRECT_KERNELS.load(Ordering::Relaxed) {
+            return None;
+        }
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                return Some(Self::Avx512);
+            }
+            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                return Some(Self::Avx2);
+            }
+        }
+        None
+    }
+
+    fn lanes(self) -> usize {
+        match self {
+            #[cfg(target_arch = "x86_64")]
+            Self::Avx512 => 16,
+            #[cfg(target_arch = "x86_64")]
+            Self::Avx2 => 8,
+        }
+    }
+
+    /// The register tile `(T, V)` of [`Isa::pv`] for rows of `nvec` vectors: at most 24
+    /// accumulators of the 32 vector registers with AVX-512, 12 of 16 with AVX2. Rows are
+    /// padded to a multiple of `V` vectors.
+    fn pv_shape(self, nvec: usize) -> (usize, usize) {
+        match (self.lanes(), nvec) {
+            (_, 0 | 1) => (8, 1),
+            (8, _) | (_, 2) => (6, 2),
+            (_, 3) => (6, 3),
+            _ => (4, 4),
+        }
+    }
+
+    /// `n` values rounded up to whole register tiles of `V` vectors of [`Isa::pv_shape`].
+    fn pv_width(self, n: usize) -> (usize, usize, usize) {
+        let lanes = self.lanes();
+        let (t, v) = self.pv_shape(n.div_ceil(lanes));
+        (t, v, n.div_ceil(v * lanes) * v * lanes)
+    }
+
+    /// The position-vector forward kernel (`fwd_core` of the instruction set's module).
+    ///
+    /// # Safety
+    /// As the kernel's; `self` must be supported by the CPU.
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn fwd_core(
+        self,
+        inp: *const f32,
+        offs: &[usize],
+        wpack: &[f32],
+        init: &[f32],
+        n: usize,
+        obuf: *mut f32,
+        ld: usize,
+    ) {
+        // SAFETY: forwarded contract.
+        unsafe {
+            match self {
+                #[cfg(target_arch = "x86_64")]
+                Self::Avx512 => avx512::fwd_core(inp, offs, wpack, init, n, obuf, ld),
+                #[cfg(target_arch = "x86_64")]
+                Self::Avx2 => avx2::fwd_core(inp, offs, wpack, init, n, obuf, ld),
+            }
+        }
+    }
+
+    /// A channel-vector register tile (`pv` of the instruction set's module).
+    ///
+    /// # Safety
+    /// As the kernel's; `self` must be supported by the CPU.
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn pv(
+        self,
+        tv: (usize, usize),
+        a: *const f32,
+        base: &[usize],
+        offs: &[usize],
+        b: *const f32,
+        bs: usize,
+        out: *mut f32,
+        os: usize,
+    ) {
+        // SAFETY: forwarded contract.
+        unsafe {
+            match self {
+                #[cfg(target_arch = "x86_64")]
+                Self::Avx512 => avx512::pv(tv, a, base, offs, b, bs, out, os),
+                #[cfg(target_arch = "x86_64")]
+                Self::Avx2 => avx2::pv(tv, a, base, offs, b, bs, out, os),
+            }
+        }
+    }
+}
+
+/// Whether the direct kernels take a pass with `cout` outputs over `j` = `Cin·kh·kw` inputs
+/// each (f32 on a CPU with AVX2 or AVX-512 is checked by the caller): narrow layers.
+fn direct_fits(cout: usize, j: usize) -> bool {
+    cout <= 64 && j <= 1024
+}
+
+/// Whether the weight gradient of `g` takes the direct kernel: a narrow layer whose output
+/// channels fill at least half of the vector lanes they occupy, or with few taps (measured with
+/// 6 output channels: 1.3× slower than the GEMMs over 288 taps, 1.6× faster over 16).
+fn direct_wgrad_fits(g: &Geom, isa: Isa) -> bool {
+    let (_, _, cp) = isa.pv_width(g.cout);
+    direct_fits(g.cout, g.krows()) && (2 * g.cout >= cp || g.krows() <= 64)
+}
+
+/// Whether the forward pass of `g` takes the direct kernels: a narrow layer, and at most 128
+/// input channels for a 1×1 kernel (the direct kernels do not block the sum over the input
+/// channels; measured: 1.5× slower than the GEMMs at 256).
+fn direct_fwd_fits(g: &Geom) -> bool {
+    direct_fits(g.cout, g.krows()) && (g.taps() > 1 || g.cin <= 128)
+}
+
+/// Whether the input gradient of `g` at a stride above 1 takes the direct kernel: a narrow
+/// layer whose per-image column matrix `(Ho·Wo, Cin·kh·kw)` has at most this many values (the
+/// small model's strided layers have 2.3k–9.2k; measured at 256 × 512 the direct kernel only
+/// matches the GEMMs, and its pixel-major scatter was 2× slower on 64×64 outputs).
+const COL2IM_DIRECT_MAX: usize = 1 << 14;
+
+/// The first `N` values of `s` (zeros past its end).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn arr<const N: usize>(s: &[usize]) -> [usize; N] {
+    let mut a = [0; N];
+    for (d, &v) in a.iter_mut().zip(s) {
+        *d = v;
+    }
+    a
+}
+
+/// Generates the register tiles of the direct kernels for one vector instruction set: a module
+/// `$m` of `#[target_feature($feat)]` functions on `$lanes`-lane vectors.
+macro_rules! direct_kernels {
+    ($m:ident, $feat:literal, $lanes:literal, $vmax:literal,
+     $zero:ident, $splat:ident, $loadu:ident, $storeu:ident, $fmadd:ident) => {
+        #[cfg(target_arch = "x86_64")]
+        mod $m {
+            use super::{arr, FWD_R};
+            use std::arch::x86_64::*;
+
+            const L: usize = $lanes;
+
+            /// One position-vector tile: for `r < R` and `q < V·L`,
+            /// `out[r·ld + q] = init[r] + Σ_j w[j][r]·inp[offs[j] + q]`.
+            ///
+            /// # Safety
+            /// `inp + offs[j] + q` must be readable for every `j` and `q < V·L`, and
+            /// `out + r·ld + q` writable for every `r < R`, `q < V·L`.
+            #[inline]
+            #[target_feature(enable = $feat)]
+            unsafe fn fwd_tile<const R: usize, const V: usize>(
+                inp: *const f32,
+                offs: &[usize],
+                w: &[f32],
+                init: &[f32; R],
+                out: *mut f32,
+                ld: usize,
+            ) {
+                let mut acc = [[$zero(); V]; R];
+                for (a, &b) in acc.iter_mut().zip(init) {
+                    *a = [$splat(b); V];
+                }
+                for (&off, wj) in offs.iter().zip(w.chunks_exact(R)) {
+                    let mut xs = [$zero(); V];
+                    for (v, x) in xs.iter_mut().enumerate() {
+                        // SAFETY: see the function's contract.
+                        *x = unsafe { $loadu(inp.add(off + v * L)) };
+                    }
+                    for (a, &wv) in acc.iter_mut().zip(wj) {
+                        let wv = $splat(wv);
+                        for (s, &x) in a.iter_mut().zip(&xs) {
+                            *s = $fmadd(x, wv, *s);
+                        }
+                    }
+                }
+                for (r, a) in acc.iter().enumerate() {
+                    for (v, &s) in a.iter().enumerate() {
+                        // SAFETY: see the function's contract.
+                        unsafe { $storeu(out.add(r * ld + v * L), s) };
+                    }
+                }
+            }
+
+            /// The position-vector forward kernel over `n` positions: `obuf[co·ld + q] =
+            /// init[co] + Σ_j w[co][j]·inp[offs[j] + q]` for every `co < init.len()` and
+            /// `q < ⌈n/L⌉·L`, `wpack` holding the weight in blocks of [`FWD_R`] output
+            /// channels, `[block][j][r]`, and `init.len()` a multiple of [`FWD_R`].
+            ///
+            /// # Safety
+            /// `inp + offs[j] + q` must be readable for every `j` and `q < ⌈n/L⌉·L`, and
+            /// `obuf + co·ld + q` writable for those `q` and every `co`.
+            #[target_feature(enable = $feat)]
+            pub(super) unsafe fn fwd_core(
+                inp: *const f32,
+                offs: &[usize],
+                wpack: &[f32],
+                init: &[f32],
+                n: usize,
+                obuf: *mut f32,
+                ld: usize,
+            ) {
+                let block = offs.len() * FWD_R;
+                if block == 0 {
+                    return;
+                }
+                let mut q0 = 0;
+                while q0 < n {
+                    let nv = (n - q0).div_ceil(L).min($vmax);
+                    for (cb, (w, b)) in wpack
+                        .chunks_exact(block)
+                        .zip(init.chunks_exact(FWD_R))
+                        .enumerate()
+                    {
+                        let Ok(b) = <&[f32; FWD_R]>::try_from(b) else {
+                            continue;
+                        };
+                        // SAFETY: within the caller's bounds (q0 + nv·L ≤ ⌈n/L⌉·L).
+                        unsafe {
+                            let (i, o) = (inp.add(q0), obuf.add(cb * FWD_R * ld + q0));
+                            match nv {
+                                1 => fwd_tile::<FWD_R, 1>(i, offs, w, b, o, ld),
+                                2 => fwd_tile::<FWD_R, 2>(i, offs, w, b, o, ld),
+                                3 => fwd_tile::<FWD_R, 3>(i, offs, w, b, o, ld),
+                                _ => fwd_tile::<FWD_R, $vmax>(i, offs, w, b, o, ld),
+                            }
+                        }
+                    }
+                    q0 += nv * L;
+                }
+            }
+
+            /// One channel-vector tile: for `t < T`, `v < V`,
+            /// `out[t·os + v·L ..][..L] += Σ_k a[base[t] + offs[k]] · b[k·bs + v·L ..][..L]`.
+            ///
+            /// # Safety
+            /// Every `a`, `b` and `out` position named above must be valid.
+            #[inline]
+            #[target_feature(enable = $feat)]
+            unsafe fn pv_tile<const T: usize, const V: usize>(
+                a: *const f32,
+                base: &[usize; T],
+                offs: &[usize],
+                b: *const f32,
+                bs: usize,
+                out: *mut f32,
+                os: usize,
+            ) {
+                let mut acc = [[$zero(); V]; T];
+                for (t, at) in acc.iter_mut().enumerate() {
+                    for (v, s) in at.iter_mut().enumerate() {
+                        // SAFETY: see the function's contract.
+                        *s = unsafe { $loadu(out.add(t * os + v * L)) };
+                    }
+                }
+                let mut rows = [a; T];
+                for (r, &o) in rows.iter_mut().zip(base) {
+                    // SAFETY: see the function's contract.
+                    *r = unsafe { a.add(o) };
+                }
+                for (k, &off) in offs.iter().enumerate() {
+                    let mut bv = [$zero(); V];
+                    for (v, x) in bv.iter_mut().enumerate() {
+                        // SAFETY: see the function's contract.
+                        *x = unsafe { $loadu(b.add(k * bs + v * L)) };
+                    }
+                    for (at, &r) in acc.iter_mut().zip(&rows) {
+                        // SAFETY: see the function's contract.
+                        let av = $splat(unsafe { *r.add(off) });
+                        for (s, &x) in at.iter_mut().zip(&bv) {
+                            *s = $fmadd(av, x, *s);
+                        }
+                    }
+                }
+                for (t, at) in acc.iter().enumerate() {
+                    for (v, &s) in at.iter().enumerate() {
+                        // SAFETY: see the function's contract.
+                        unsafe { $storeu(out.add(t * os + v * L), s) };
+                    }
+                }
+            }
+
+            /// [`pv_tile`] with `tv = (T, V)` one of (8, 1), (6, 2), (6, 3), (4, 4) and the
+            /// first `T` values of `base` (zeros past its end).
+            ///
+            /// # Safety
+            /// As [`pv_tile`]'s.
+            #[allow(clippy::too_many_arguments)]
+            #[target_feature(enable = $feat)]
+            pub(super) unsafe fn pv(
+                tv: (usize, usize),
+                a: *const f32,
+                base: &[usize],
+                offs: &[usize],
+                b: *const f32,
+                bs: usize,
+                out: *mut f32,
+                os: usize,
+            ) {
+                // SAFETY: forwarded contract.
+                unsafe {
+                    match tv {
+                        (8, 1) => pv_tile::<8, 1>(a, &arr(base), offs, b, bs, out, os),
+                        (6, 2) => pv_tile::<6, 2>(a, &arr(base), offs, b, bs, out, os),
+                        (6, 3) => pv_tile::<6, 3>(a, &arr(base), offs, b, bs, out, os),
+                        _ => pv_tile::<4, 4>(a, &arr(base), offs, b, bs, out, os),
+                    }
+                }
+            }
+        }
+    };
+}
+
+direct_kernels!(
+    avx512,
+    "avx512f,fma",
+    16,
+    4,
+    _mm512_setzero_ps,
+    _mm512_set1_ps,
+    _mm512_loadu_ps,
+    _mm512_storeu_ps,
+    _mm512_fmadd_ps
+);
+direct_kernels!(
+    avx2,
+    "avx2,fma",
+    8,
+    2,
+    _mm256_setzero_ps,
+    _mm256_set1_ps,
+    _mm256_loadu_ps,
+    _mm256_storeu_ps,
+    _mm256_fmadd_ps
+);
+
+/// Copies input rows `r0 − ph .. r0 − ph + nb` of the image `img` starts with, `(Cin, H, W)`,
+/// into `band`, zero-padded: `Cin` planes `bplane` apart of `nb` rows of `wp = W + 2·pw` values.
+fn copy_band(img: &[f32], g: &Geom, r0: usize, nb: usize, (wp, bplane): (usize, usize), band: &mut [f32]) {
+    let hw = g.in_plane();
+    for (c, src) in img.chunks_exact(hw).take(g.cin).enumerate() {
+        let plane = &mut band[c * bplane..c * bplane + nb * wp];
+        for (br, dst) in plane.chunks_exact_mut(wp).enumerate() {
+            match (r0 + br).checked_sub(g.ph).filter(|&iy| iy < g.h) {
+                Some(iy) => {
+                    dst[..g.pw].fill(0.0);
+                    dst[g.pw..g.pw + g.w].copy_from_slice(&src[iy * g.w..(iy + 1) * g.w]);
+                    dst[g.pw + g.w..].fill(0.0);
+                }
+                None => dst.fill(0.0),
+            }
+        }
+    }
+}
+
+/// How a direct pass splits into units: bands of `rows` output rows of `images` consecutive
+/// images (several images only when a band is a whole image).
+#[derive(Clone, Copy, Debug)]
+struct Units {
+    rows: usize,
+    images: usize,
+    bands: usize,
+    groups: usize,
+}
+
+/// One unit: `n` images from `bi`, output rows `oy0 .. oy0 + nr`.
+#[derive(Clone, Copy, Debug)]
+struct Unit {
+    bi: usize,
+    n: usize,
+    oy0: usize,
+    nr: usize,
+}
+
+impl Units {
+    /// Units of about `target` values (`per_row` per output row of an image) whose input rows
+    /// hold at most [`BAND_VALUES`], several whole images per unit when `stack` allows it; when
+    /// the pass is parallel, at least two units per thread (so that a worker that wakes late
+    /// still finds work).
+    fn new(g: &Geom, per_row: usize, target: usize, parallel: bool, stack: bool) -> Self {
+        let threads = rayon::current_num_threads();
+        let in_row = g.cin * g.s * (g.w + 2 * g.pw);
+        let mut bands = g.ho.div_ceil((target / per_row.max(1)).max(1));
+        bands = bands.max((g.ho * in_row).div_ceil(BAND_VALUES));
+        if parallel {
+            bands = bands.max((2 * threads).div_ceil(g.b.max(1)));
+        }
+        let rows = g.ho.div_ceil(bands.min(g.ho));
+        let bands = g.ho.div_ceil(rows);
+        let mut images = 1;
+        if stack && bands == 1 {
+            images = (target / (g.ho * per_row).max(1)).min(BAND_VALUES / (g.ho * in_row).max(1));
+            images = images.clamp(1, g.b.max(1));
+            if parallel {
+                images = images.min(g.b.div_ceil(2 * threads)).max(1);
+            }
+        }
+        Self {
+            rows,
+            images,
+            bands,
+            groups: g.b.div_ceil(images),
+        }
+    }
+
+    fn count(&self) -> usize {
+        self.groups * self.bands
+    }
+
+    fn get(&self, g: &Geom, u: usize) -> Unit {
+        let (bi, oy0) = ((u / self.bands) * self.images, (u % self.bands) * self.rows);
+        Unit {
+            bi,
+            n: self.images.min(g.b - bi),
+            oy0,
+            nr: self.rows.min(g.ho - oy0),
+        }
+    }
+
+    /// Output pixels of a unit, at most.
+    fn pixels(&self, g: &Geom) -> usize {
+        self.images * self.rows * g.wo
+    }
+}
+
+/// Where a unit of the direct kernels reads its input: the images themselves (stride 1, no
+/// padding), or a zero-padded copy of the unit's input rows, the images' rows one after the other
+/// in each channel's plane (at strides above 1 the kernels' reads skip values, and a cold input
+/// read in place that way is 2× slower than copied first).
+#[derive(Clone, Copy, Debug)]
+struct Source {
+    /// The images are read in place.
+    in_place: bool,
+    /// Row length, plane length (between channels) and image stride of what is read.
+    wp: usize,
+    plane: usize,
+    stride: usize,
+    /// Scratch values for the copy (0 in place).
+    len: usize,
+}
+
+impl Source {
+    /// In place at stride 1 without padding, else a copy.
+    fn new(g: &Geom, units: &Units) -> Self {
+        if g.ph == 0 && g.pw == 0 && g.s == 1 {
+            Self {
+                in_place: true,
+                wp: g.w,
+                plane: g.in_plane(),
+                stride: g.cin * g.in_plane(),
+                len: 0,
+            }
+        } else {
+            Self::copy(g, units)
+        }
+    }
+
+    /// A copy.
+    fn copy(g: &Geom, units: &Units) -> Self {
+        let wp = g.w + 2 * g.pw;
+        let stride = ((units.rows - 1) * g.s + g.kh) * wp;
+        let plane = units.images * stride;
+        Self {
+            in_place: false,
+            wp,
+            plane,
+            stride,
+            len: g.cin * plane,
+        }
+    }
+
+    /// The input of unit `u` of `x (B, Cin, H, W)`: a pointer to (padded) input row
+    /// `oy0·s − ph` of its first image, copied into `band` when not in place.
+    fn rows(&self, x: &[f32], g: &Geom, u: Unit, band: &mut [f32]) -> *const f32 {
+        let img = g.cin * g.in_plane();
+        if self.in_place {
+            return x[u.bi * img + u.oy0 * g.s * g.w..].as_ptr();
+        }
+        for i in 0..u.n {
+            let src = &x[(u.bi + i) * img..];
+            let nb = (u.nr - 1) * g.s + g.kh;
+            copy_band(
+                src,
+                g,
+                u.oy0 * g.s,
+                nb,
+                (self.wp, self.plane),
+                &mut band[i * self.stride..],
             );
         }
-        return Ok(conv_forward(gy, &flipped, None, &back));
+        band.as_ptr()
     }
-    Ok(col2im_conv(gy, wt, None, g))
+
+    /// Offsets of the kernel taps `(c, u, v)`, in that order.
+    fn taps(&self, g: &Geom) -> Vec<usize> {
+        let mut offs = Vec::with_capacity(g.krows());
+        for c in 0..g.cin {
+            for u in 0..g.kh {
+                for v in 0..g.kw {
+                    offs.push(c * self.plane + u * self.wp + v);
+                }
+            }
+        }
+        offs
+    }
+
+    /// Offsets of the output pixels of unit `u` (image by image, row-major) from its first
+    /// input row.
+    fn pixels(&self, g: &Geom, u: Unit, out: &mut Vec<usize>) {
+        out.clear();
+        for i in 0..u.n {
+            for r in 0..u.nr {
+                let row = i * self.stride + r * g.s * self.wp;
+                out.extend((0..g.wo).map(|ox| row + ox * g.s));
+            }
+        }
+    }
+}
+
+/// `w (Cout, J)` transposed to `(J, cp)`, zero past `Cout`.
+fn transpose_weight(w: &[f32], cout: usize, jn: usize, cp: usize) -> Vec<f32> {
+    let mut wt = vec![0f32; jn * cp];
+    for (co, row) in w.chunks_exact(jn).take(cout).enumerate() {
+        for (j, &v) in row.iter().enumerate() {
+            wt[j * cp + co] = v;
+        }
+    }
+    wt
+}
+
+/// `bias` padded with zeros to `n` values.
+fn padded_bias(bias: Option<&[f32]>, cout: usize, n: usize) -> Vec<f32> {
+    let mut init = vec![0f32; n];
+    if let Some(b) = bias {
+        init[..cout].copy_from_slice(&b[..cout]);
+    }
+    init
+}
+
+/// How a direct forward pass computes its units.
+enum FwdMode {
+    /// Stride 1: vectors of output positions ([`Isa::fwd_core`]), units of one image. The
+    /// input rows are read in `Wp = W + 2·pw` wide planes (the image itself when unpadded,
+    /// else a zero-padded copy), output position `q = row·Wp + ox` reading
+    /// `plane·c + u·Wp + v + q` (columns `ox ≥ Wo` are computed and dropped) into the output,
+    /// or into a buffer of rows `ld` apart.
+    Positions {
+        /// `w` in blocks of [`FWD_R`] output channels, `[block][j][r]`, and the bias likewise.
+        wpack: Vec<f32>,
+        init: Vec<f32>,
+        ld: usize,
+        /// The copy used when reading in place could run past the input's end, and its taps.
+        copy: Source,
+        copy_offs: Vec<usize>,
+    },
+    /// Any stride: vectors of output channels ([`Isa::pv`]): each pixel's products summed
+    /// over the taps into `cp` channels over the bias, then transposed into the output.
+    Channels {
+        /// `w` transposed, `(J, cp)`, and the bias padded to `cp`.
+        wt: Vec<f32>,
+        init: Vec<f32>,
+        tv: (usize, usize),
+        cp: usize,
+    },
+}
+
+/// A direct forward pass (the forward convolution, or the stride-1 input gradient): the plan
+/// shared by its units.
+struct FwdPlan {
+    g: Geom,
+    isa: Isa,
+    mode: FwdMode,
+    units: Units,
+    src: Source,
+    offs: Vec<usize>,
+    /// Scratch values per unit: the input copy (with slack), then the output buffer.
+    in_len: usize,
+    scratch: usize,
+}
+
+/// Whether the forward pass of `g` vectorises over output channels rather than positions:
+/// strides above 1, and images too small for whole vectors of positions.
+fn channel_vectors(g: &Geom) -> bool {
+    g.s > 1 || g.out_plane() < 64
+}
+
+impl FwdPlan {
+    /// The plan of vectors of output channels (`channels`; any stride) or of positions
+    /// (stride 1).
+    fn new(w: &[f32], bias: Option<&[f32]>, g: &Geom, isa: Isa, channels: bool) -> Self {
+        let lanes = isa.lanes();
+        let jn = g.krows();
+        let parallel = direct_parallel(g.macs());
+        if !channels && g.s == 1 {
+            let wp = g.w + 2 * g.pw;
+            let units = Units::new(g, wp, FWD_UNIT_POSITIONS, parallel, false);
+            let cpad = g.cout.div_ceil(FWD_R) * FWD_R;
+            let mut wpack = vec![0f32; cpad * jn];
+            for (co, row) in w.chunks_exact(jn).take(g.cout).enumerate() {
+                let (blk, r) = (co / FWD_R, co % FWD_R);
+                for (j, &v) in row.iter().enumerate() {
+                    wpack[(blk * jn + j) * FWD_R + r] = v;
+                }
+            }
+            let ld = ((units.rows - 1) * wp + g.wo).div_ceil(lanes) * lanes;
+            let (src, copy) = (Source::new(g, &units), Source::copy(g, &units));
+            // The copy's last vector may read up to `lanes` values past it.
+            let in_len = copy.len + lanes;
+            return Self {
+                g: *g,
+                isa,
+                offs: src.taps(g),
+                mode: FwdMode::Positions {
+                    wpack,
+                    init: padded_bias(bias, g.cout, cpad),
+                    ld,
+                    copy_offs: copy.taps(g),
+                    copy,
+                },
+                units,
+                src,
+                in_len,
+                scratch: in_len + cpad * ld,
+            };
+        }
+        let units = Units::new(g, g.wo, PIX_UNIT, parallel, true);
+        let src = Source::new(g, &units);
+        let (t, v, cp) = isa.pv_width(g.cout);
+        let npix = units.pixels(g).div_ceil(t) * t;
+        Self {
+            g: *g,
+            isa,
+            offs: src.taps(g),
+            mode: FwdMode::Channels {
+                wt: transpose_weight(w, g.cout, jn, cp),
+                init: padded_bias(bias, g.cout, cp),
+                tv: (t, v),
+                cp,
+            },
+            units,
+            src,
+            in_len: src.len,
+            scratch: src.len + npix * cp,
+        }
+    }
+
+    /// One unit of `x (B, Cin, H, W)`, written into `out (B, Cout, Ho, Wo)`.
+    ///
+    /// # Safety
+    /// `self.isa` must be the CPU's; `out` must point to the `B·Cout·Ho·Wo` values of the
+    /// output, of which the unit writes its own rows; `scratch` must hold `self.scratch`
+    /// values and `pix` is scratch for pixel offsets.
+    unsafe fn unit(&self, x: &[f32], unit: usize, scratch: &mut [f32], pix: &mut Vec<usize>, out: SyncPtr<f32>) {
+        let g = &self.g;
+        let u = self.units.get(g, unit);
+        let (hw, plane) = (g.in_plane(), g.out_plane());
+        let (band, obuf) = scratch.split_at_mut(self.in_len);
+        let isa = self.isa;
+        match &self.mode {
+            FwdMode::Positions {
+                wpack,
+                init,
+                ld,
+                copy,
+                copy_offs,
+            } => {
+                // Units of one image.
+                let (bi, oy0, nr) = (u.bi, u.oy0, u.nr);
+                let img = &x[bi * g.cin * hw..];
+                let wp = g.w + 2 * g.pw;
+                let n = (nr - 1) * wp + g.wo;
+                let end = oy0 * g.w + n.div_ceil(isa.lanes()) * isa.lanes() + self.offs.last().copied().unwrap_or(0);
+                let (inp, offs) = if self.src.in_place && end <= img.len() {
+                    (img[oy0 * g.w..].as_ptr(), &self.offs)
+                } else {
+                    (copy.rows(x, g, u, band), copy_offs)
+                };
+                // Reads (all calls below): in place, they end before `img`'s end (checked); a
+                // copy's end before c·plane + (kh − 1)·Wp + kw − 1 + ⌈n/L⌉·L ≤ cin·plane + L − 1
+                // < in_len (as Wo + kw − 1 = Wp).
+                let base = bi * g.cout * plane + oy0 * g.wo;
+                // Without dropped columns (Wp = Wo), whole vectors of positions of the whole
+                // blocks of FWD_R channels go straight into the output, the rest through `obuf`.
+                let lanes = isa.lanes();
+                let full = if wp == g.wo { g.cout / FWD_R } else { 0 };
+                let direct = if full > 0 { n / lanes * lanes } else { 0 };
+                let split = full * FWD_R * offs.len();
+                let ((w_full, w_rest), (i_full, i_rest)) = (wpack.split_at(split), init.split_at(full * FWD_R));
+                let ob = obuf.as_mut_ptr();
+                // SAFETY: the first call writes positions oy0·Wo + q, q < direct ≤ n = nr·Wo,
+                // of channels < full·FWD_R of image bi: this unit's own rows; the others write
+                // `obuf` rows (cpad of them) of `ld` ≥ ⌈n/L⌉·L values.
+                unsafe {
+                    isa.fwd_core(inp, offs, w_full, i_full, direct, out.get().add(base), plane);
+                    isa.fwd_core(inp.add(direct), offs, w_full, i_full, n - direct, ob, *ld);
+                    isa.fwd_core(inp, offs, w_rest, i_rest, n, ob.add(full * FWD_R * ld), *ld);
+                }
+                for co in 0..g.cout {
+                    // `obuf` holds positions `from ..` of the channel.
+                    let from = if co < full * FWD_R { direct } else { 0 };
+                    let src = &obuf[co * ld..(co + 1) * ld];
+                    // Position q of the unit is output row q / Wp, column q % Wp.
+                    let mut q = from;
+                    while q < n {
+                        let (r, ox) = (q / wp, q % wp);
+                        let len = (g.wo - ox).min(n - q);
+                        // SAFETY: row oy0 + r < Ho, columns ox .. ox + len ≤ Wo of channel co of
+                        // image bi: this unit's.
+                        unsafe {
+                            let d = out.get().add(base + co * plane + r * g.wo + ox);
+                            std::ptr::copy_nonoverlapping(src[q - from..].as_ptr(), d, len);
+                        }
+                        q = (r + 1) * wp;
+                    }
+                }
+            }
+            FwdMode::Channels { wt, init, tv, cp } => {
+                let inp = self.src.rows(x, g, u, band);
+                self.src.pixels(g, u, pix);
+                let npix = pix.len();
+                let (t, v) = *tv;
+                let obuf = &mut obuf[..npix.div_ceil(t) * t * cp];
+                for row in obuf.chunks_exact_mut(*cp) {
+                    row.copy_from_slice(init);
+                }
+                for (pb, i0) in pix.chunks(t).zip((0..).step_by(t)) {
+                    for cb in (0..*cp).step_by(v * isa.lanes()) {
+                        // SAFETY: pixel p reads the input at pix[p] + offs[j], inside the
+                        // images (in place: no padding) or the copied rows; padding pixels of
+                        // the last block read at offs[j]. `wt` has J rows of cp values, `obuf`
+                        // ⌈npix/T⌉·T rows of cp.
+                        unsafe {
+                            let o = obuf.as_mut_ptr().add(i0 * cp + cb);
+                            isa.pv(*tv, inp, pb, &self.offs, wt[cb..].as_ptr(), *cp, o, *cp);
+                        }
+                    }
+                }
+                let per_image = u.nr * g.wo;
+                for (i, rows) in obuf.chunks_exact(per_image * cp).take(u.n).enumerate() {
+                    let base = (u.bi + i) * g.cout * plane + u.oy0 * g.wo;
+                    for co in 0..g.cout {
+                        // SAFETY: pixels oy0·Wo .. + nr·Wo of channel co of image bi + i: this
+                        // unit's.
+                        let dst =
+                            unsafe { std::slice::from_raw_parts_mut(out.get().add(base + co * plane), per_image) };
+                        for (d, row) in dst.iter_mut().zip(rows.chunks_exact(*cp)) {
+                            *d = row[co];
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The direct weight gradient: the plan shared by its units.
+///
+/// `gw[co][j] = Σ_pixels gy[co][pixel]·x[j][pixel]` for `j = (c, u, v)` by [`Isa::pv`],
+/// accumulated transposed, `(J, cp)`: the unit's output gradient is copied pixel-major (`cp`
+/// values per pixel, its vectors), and `x[j][pixel]` is broadcast from the input at
+/// `taps[j] + pixel offset` (see [`Source`]).
+struct WgradPlan {
+    g: Geom,
+    isa: Isa,
+    units: Units,
+    src: Source,
+    /// Offsets of the `J` taps.
+    taps: Vec<usize>,
+    tv: (usize, usize),
+    cp: usize,
+    /// Scratch values per unit: the input copy, then the pixel-major gradient.
+    scratch: usize,
+}
+
+impl WgradPlan {
+    fn new(g: &Geom, isa: Isa) -> Self {
+        let (t, v, cp) = isa.pv_width(g.cout);
+        let units = Units::new(g, g.wo, PIX_UNIT, direct_parallel(g.macs()), true);
+        let src = Source::new(g, &units);
+        Self {
+            g: *g,
+            isa,
+            units,
+            taps: src.taps(g),
+            src,
+            tv: (t, v),
+            cp,
+            scratch: src.len + units.pixels(g) * cp,
+        }
+    }
+
+    /// Length of a task's accumulator, `(J rounded up to T, cp)`.
+    fn acc_len(&self) -> usize {
+        self.g.krows().div_ceil(self.tv.0) * self.tv.0 * self.cp
+    }
+
+    /// Adds the products of unit `unit` into `acc`.
+    ///
+    /// # Safety
+    /// `self.isa` must be the CPU's; `scratch` must hold `self.scratch` values (the gradient's
+    /// channels past `Cout` are never written: they reach only accumulator columns that are
+    /// dropped) and `pix` is scratch for pixel offsets.
+    unsafe fn unit(
+        &self,
+        x: &[f32],
+        gy: &[f32],
+        unit: usize,
+        scratch: &mut [f32],
+        pix: &mut Vec<usize>,
+        acc: &mut [f32],
+    ) {
+        let g = &self.g;
+        let u = self.units.get(g, unit);
+        let plane = g.out_plane();
+        let (band, gt) = scratch.split_at_mut(self.src.len);
+        let inp = self.src.rows(x, g, u, band);
+        self.src.pixels(g, u, pix);
+        let cp = self.cp;
+        let per_image = u.nr * g.wo;
+        for (i, gt) in gt.chunks_mut(per_image * cp).take(u.n).enumerate() {
+            let grad = &gy[(u.bi + i) * g.cout * plane + u.oy0 * g.wo..];
+            for co in 0..g.cout {
+                for (d, &s) in gt[co..]
+                    .iter_mut()
+                    .step_by(cp)
+                    .zip(&grad[co * plane..co * plane + per_image])
+                {
+                    *d = s;
+                }
+            }
+        }
+        let (t, v) = self.tv;
+        let isa = self.isa;
+        for (taps, j0) in self.taps.chunks(t).zip((0..).step_by(t)) {
+            for cb in (0..cp).step_by(v * isa.lanes()) {
+                // SAFETY: tap j of pixel p reads the input at taps[j] + pix[p], inside the
+                // images (in place: no padding) or the copied rows; padding rows of the last
+                // block read at pix[p]. `gt` holds pix.len() rows of cp values, `acc` J rounded
+                // up to T rows.
+                unsafe {
+                    let o = acc.as_mut_ptr().add(j0 * cp + cb);
+                    isa.pv((t, v), inp, taps, pix, gt[cb..].as_ptr(), cp, o, cp);
+                }
+            }
+        }
+    }
+}
+
+/// The direct input gradient at strides above 1, per image: blocks of output pixels, each
+/// pixel's `cols[j] = Σ_co gy[co][pixel]·w[co][j]` by [`Isa::pv`] (the weight's rows padded to
+/// `jp`), then added into the image's planes (the adjoint of reading `x` at the taps).
+struct Col2imPlan {
+    g: Geom,
+    isa: Isa,
+    /// `w` with rows padded to `jp` values.
+    wp: Vec<f32>,
+    jp: usize,
+    tv: (usize, usize),
+    /// Offsets of the output gradient's channels.
+    offs: Vec<usize>,
+    scratch: usize,
+}
+
+impl Col2imPlan {
+    fn new(w: &[f32], g: &Geom, isa: Isa) -> Self {
+        let jn = g.krows();
+        let (t, v, jp) = isa.pv_width(jn);
+        let mut wp = vec![0f32; g.cout * jp];
+        for (dst, src) in wp.chunks_exact_mut(jp).zip(w.chunks_exact(jn)) {
+            dst[..jn].copy_from_slice(src);
+        }
+        let block = COL2IM_PIXELS.div_ceil(t) * t;
+        Self {
+            g: *g,
+            isa,
+            wp,
+            jp,
+            tv: (t, v),
+            offs: (0..g.cout).map(|co| co * g.out_plane()).collect(),
+            scratch: block * jp,
+        }
+    }
+
+    /// Image `bi`'s input gradient, added into `out` (its `(Cin, H, W)` planes).
+    ///
+    /// # Safety
+    /// `self.isa` must be the CPU's; `scratch` must hold `self.scratch` values.
+    unsafe fn image(&self, gy: &[f32], bi: usize, scratch: &mut [f32], out: &mut [f32]) {
+        let g = &self.g;
+        let plane = g.out_plane();
+        let grad = &gy[bi * g.cout * plane..(bi + 1) * g.cout * plane];
+        let (t, v) = self.tv;
+        let jp = self.jp;
+        let isa = self.isa;
+        let block = scratch.len() / jp;
+        let mut pixels = [0usize; 8];
+        for p0 in (0..plane).step_by(block) {
+            let n = block.min(plane - p0);
+            let cols = &mut scratch[..n.div_ceil(t) * t * jp];
+            cols.fill(0.0);
+            for i0 in (0..n).step_by(t) {
+                for (d, p) in pixels.iter_mut().zip(p0 + i0..p0 + n) {
+                    *d = p;
+                }
+                let pb = &pixels[..t.min(n - i0)];
+                for jb in (0..jp).step_by(v * isa.lanes()) {
+                    // SAFETY: pixel p reads grad[co·plane + p], p < plane (padding pixels of
+                    // the last block read pixel 0); `wp` holds Cout rows of jp values, `cols`
+                    // ⌈n/T⌉·T rows of jp.
+                    unsafe {
+                        let o = cols.as_mut_ptr().add(i0 * jp + jb);
+                        isa.pv((t, v), grad.as_ptr(), pb, &self.offs, self.wp[jb..].as_ptr(), jp, o, jp);
+                    }
+                }
+            }
+            col2im_pixels(cols, jp, g, p0, n, out);
+        }
+    }
+}
+
+/// Adds pixel-major columns (`ld` values for each of the output pixels `p0 .. p0 + n` of one
+/// image, the first `C·kh·kw` in `(c, u, v)` order) into the image's planes `out (C, H, W)`
+/// at the positions the forward pass reads them from.
+fn col2im_pixels(cols: &[f32], ld: usize, g: &Geom, p0: usize, n: usize, out: &mut [f32]) {
+    // A few channels at a time, so that the writes stay within a few planes.
+    const CHANNELS: usize = 8;
+    let (hw, taps) = (g.in_plane(), g.taps());
+    for (cb, planes) in out.chunks_mut(CHANNELS * hw).take(g.cin.div_ceil(CHANNELS)).enumerate() {
+        for (i, col) in cols.chunks_exact(ld).take(n).enumerate() {
+            let (oy, ox) = ((p0 + i) / g.wo, (p0 + i) % g.wo);
+            let vals = &col[cb * CHANNELS * taps..];
+            for (plane, vals) in planes.chunks_exact_mut(hw).zip(vals.chunks_exact(taps)) {
+                for (u, row) in vals.chunks_exact(g.kw).enumerate() {
+                    let Some(iy) = (oy * g.s + u).checked_sub(g.ph).filter(|&y| y < g.h) else {
+                        continue;
+                    };
+                    let line = &mut plane[iy * g.w..(iy + 1) * g.w];
+                    for (v, &val) in row.iter().enumerate() {
+                        if let Some(ix) = (ox * g.s + v).checked_sub(g.pw).filter(|&x| x < g.w) {
+                            line[ix] += val;
+                        }
+                    }
+                }
+            }
+        }
+    }
+}
+
+thread_local! {
+    /// Scratch of the direct kernels on this thread, kept from call to call.
+    static SCRATCH: std::cell::Cell<(Vec<f32>, Vec<usize>)> = const { std::cell::Cell::new((Vec::new(), Vec::new())) };
+}
+
+/// Runs `f` on `len` values of this thread's scratch (whatever values earlier calls left: the
+/// kernels write what they read, except padding whose results they drop) and its scratch of
+/// offsets.
+fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32], &mut Vec<usize>) -> R) -> R {
+    // Taken out of the cell, so that a nested call (a rayon task stolen meanwhile) has its own.
+    let (mut buf, mut offs) = SCRATCH.with(std::cell::Cell::take);
+    if buf.len() < len {
+        buf.resize(len, 0.0);
+    }
+    let out = f(&mut buf[..len], &mut offs);
+    SCRATCH.with(|s| s.set((buf, offs)));
+    out
+}
+
+/// Whether a direct pass of `macs` multiply-adds runs in parallel (else on the calling thread).
+fn direct_parallel(macs: usize) -> bool {
+    macs >= PAR_MIN_MACS && rayon::current_num_threads() > 1
+}
+
+/// The direct forward convolution (also the stride-1 input gradient, on the flipped weight):
+/// `x (B, Cin, H, W)`, `w (Cout, Cin, kh, kw)`, `bias (Cout)` → `(B, Cout, Ho, Wo)`.
+fn direct_forward(x: &[f32], w: &[f32], bias: Option<&[f32]>, g: &Geom, isa: Isa) -> Vec<f32> {
+    direct_forward_with(x, w, bias, g, isa, channel_vectors(g))
+}
+
+/// [`direct_forward`] with vectors of output channels (`channels`) or of positions (stride 1).
+fn direct_forward_with(x: &[f32], w: &[f32], bias: Option<&[f32]>, g: &Geom, isa: Isa, channels: bool) -> Vec<f32> {
+    let plan = FwdPlan::new(w, bias, g, isa, channels);
+    let len = g.b * g.cout * g.out_plane();
+    let mut out: Vec<f32> = Vec::with_capacity(len);
+    let dst = SyncPtr(out.as_mut_ptr());
+    let run = |unit: usize, scratch: &mut [f32], pix: &mut Vec<usize>| {
+        // SAFETY: `isa` is the CPU's; each unit writes its own rows of `out`'s `len` values
+        // (its capacity), all units together every value.
+        unsafe { plan.unit(x, unit, scratch, pix, dst) }
+    };
+    if direct_parallel(plan.g.macs()) {
+        (0..plan.units.count())
+            .into_par_iter()
+            .for_each(|u| with_scratch(plan.scratch, |s, p| run(u, s, p)));
+    } else {
+        with_scratch(plan.scratch, |s, p| (0..plan.units.count()).for_each(|u| run(u, s, p)));
+    }
+    // SAFETY: every one of the `len` values was written above.
+    unsafe { out.set_len(len) };
+    out
+}
+
+/// The direct weight gradient: `x (B, Cin, H, W)`, `gy (B, Cout, Ho, Wo)` → `(Cout, Cin, kh, kw)`.
+fn direct_weight_grad(x: &[f32], gy: &[f32], g: &Geom, isa: Isa) -> Vec<f32> {
+    let plan = WgradPlan::new(g, isa);
+    let acc_len = plan.acc_len();
+    let add = |mut acc: Vec<f32>, unit: usize| {
+        // SAFETY: `isa` is the CPU's.
+        with_scratch(plan.scratch, |s, p| unsafe { plan.unit(x, gy, unit, s, p, &mut acc) });
+        acc
+    };
+    let total = if direct_parallel(plan.g.macs()) {
+        // One task per unit (rayon folds them into one accumulator per thread it splits into).
+        (0..plan.units.count())
+            .into_par_iter()
+            .fold(|| vec![0f32; acc_len], add)
+            .reduce(
+                || vec![0f32; acc_len],
+                |mut a, b| {
+                    a.iter_mut().zip(&b).for_each(|(a, &b)| *a += b);
+                    a
+                },
+            )
+    } else {
+        (0..plan.units.count()).fold(vec![0f32; acc_len], add)
+    };
+    // (J, cp) → (Cout, J).
+    let jn = g.krows();
+    let mut out = vec![0f32; g.cout * jn];
+    for (j, row) in total.chunks_exact(plan.cp).take(jn).enumerate() {
+        for (co, &v) in row[..g.cout].iter().enumerate() {
+            out[co * jn + j] = v;
+        }
+    }
+    out
+}
+
+/// The direct input gradient at strides above 1: `gy (B, Cout, Ho, Wo)`,
+/// `w (Cout, Cin, kh, kw)` → `(B, Cin, H, W)`, images in parallel.
+fn direct_col2im(gy: &[f32], w: &[f32], g: &Geom, isa: Isa) -> Vec<f32> {
+    let plan = Col2imPlan::new(w, g, isa);
+    let img_len = g.cin * g.in_plane();
+    let mut out = vec![0f32; g.b * img_len];
+    let run = |bi: usize, img: &mut [f32], scratch: &mut [f32]| {
+        // SAFETY: `isa` is the CPU's.
+        unsafe { plan.image(gy, bi, scratch, img) }
+    };
+    if direct_parallel(plan.g.macs()) {
+        out.par_chunks_mut(img_len)
+            .enumerate()
+            .for_each(|(bi, img)| with_scratch(plan.scratch, |s, _| run(bi, img, s)));
+    } else {
+        with_scratch(plan.scratch, |s, _| {
+            for (bi, img) in out.chunks_exact_mut(img_len).enumerate() {
+                run(bi, img, s);
+            }
+        });
+    }
+    out
 }
 
 /// The forward convolution op, `(x, w[, b]) → y` (the no-bias form is its [`CustomOp2`]).
@@ -881,7 +2082,7 @@ impl Conv2dOp {
             let x = data::<T>(xs, xl, "input")?;
             let w = data::<T>(ws, wl, "weight")?;
             let b = bias.map(|(s, l)| data::<T>(s, l, "bias")).transpose()?;
-            Ok(T::to_cpu_storage_owned(conv_forward(x, w, b, g)))
+            Ok(T::to_cpu_storage_owned(T::forward(x, w, b, g)))
         }
         let out = match xs.dtype() {
             DType::F32 => run::<f32>(xs, xl, ws, wl, bias, &g)?,
@@ -1054,7 +2255,7 @@ impl CustomOp2 for InputGradOp {
         fn run<T: Float>(s1: &CpuStorage, l1: &Layout, s2: &CpuStorage, l2: &Layout, g: &Geom) -> Result<CpuStorage> {
             let gy = data::<T>(s1, l1, "grad")?;
             let w = data::<T>(s2, l2, "weight")?;
-            Ok(T::to_cpu_storage_owned(conv_input_grad(gy, w, g)?))
+            Ok(T::to_cpu_storage_owned(T::input_grad(gy, w, g)?))
         }
         let out = match s1.dtype() {
             DType::F32 => run::<f32>(s1, l1, s2, l2, &g)?,
@@ -1102,7 +2303,7 @@ impl CustomOp2 for WeightGradOp {
         fn run<T: Float>(s1: &CpuStorage, l1: &Layout, s2: &CpuStorage, l2: &Layout, g: &Geom) -> Result<CpuStorage> {
             let x = data::<T>(s1, l1, "input")?;
             let gy = data::<T>(s2, l2, "grad")?;
-            Ok(T::to_cpu_storage_owned(conv_weight_grad(x, gy, g)))
+            Ok(T::to_cpu_storage_owned(T::weight_grad(x, gy, g)))
         }
         let out = match s1.dtype() {
             DType::F32 => run::<f32>(s1, l1, s2, l2, &g)?,
@@ -1475,6 +2676,119 @@ mod tests {
         let g = Geom::new(c.b, c.cin, (c.h, c.w), c.cout, (c.kh, c.kw), c.s, (c.p, c.p)).expect("geom");
         assert!(winograd_fits(&g, c.cin, c.cout) && winograd_fits(&g, c.cout, c.cin));
         check_conv_with(c, 1e-4, &[DType::F32], &[true]);
+    }
+
+    /// The instruction sets of the direct kernels this CPU has.
+    fn isas() -> Vec<Isa> {
+        let mut out = Vec::new();
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                out.push(Isa::Avx512);
+            }
+            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                out.push(Isa::Avx2);
+            }
+        }
+        out
+    }
+
+    /// The direct kernels against [`naive_conv`], for each instruction set the CPU has: the
+    /// forward pass with vectors of output channels and (stride 1) of positions, the input
+    /// gradient (the stride-1 forward pass on the flipped weight, both ways, or the
+    /// channel-vector col2im) and the weight gradient.
+    fn check_direct(c: Case) {
+        let dev = Device::Cpu;
+        let (ho, wo) = c.out();
+        let seed = (c.cin * 31 + c.cout * 7 + c.h + c.kh * 5 + c.s * 3 + c.p) as u64;
+        let vals = |t: Tensor| {
+            t.to_dtype(DType::F32)
+                .and_then(|t| t.flatten_all())
+                .and_then(|t| t.to_vec1::<f32>())
+                .expect("values")
+        };
+        let x = vals(uniform((c.b, c.cin, c.h, c.w), -1.0, 1.0, seed, &dev).expect("x"));
+        let w = vals(uniform((c.cout, c.cin, c.kh, c.kw), -0.5, 0.5, seed + 1, &dev).expect("w"));
+        let bias = vals(uniform(c.cout, -0.5, 0.5, seed + 2, &dev).expect("b"));
+        let gy = vals(uniform((c.b, c.cout, ho, wo), -1.0, 1.0, seed + 3, &dev).expect("gy"));
+        let f64s = |v: &[f32]| v.iter().map(|&v| f64::from(v)).collect::<Vec<_>>();
+        let [y_ref, gx_ref, gw_ref, _] = naive_conv(&c, &f64s(&x), &f64s(&w), &f64s(&bias), &f64s(&gy));
+        let g = Geom::new(c.b, c.cin, (c.h, c.w), c.cout, (c.kh, c.kw), c.s, (c.p, c.p)).expect("geom");
+        let back = back_geom(&g).expect("back geom");
+        let err = |got: &[f32], want: &[f64]| rel_err(&f64s(got), want);
+        for isa in isas() {
+            let name = format!("{c:?} {isa:?}");
+            for channels in [true, false] {
+                if !channels && c.s != 1 {
+                    continue;
+                }
+                let y = direct_forward_with(&x, &w, Some(&bias), &g, isa, channels);
+                let e = err(&y, &y_ref);
+                assert!(e <= 1e-5, "{name} channels {channels}: y error {e:e}");
+                if let Some(back) = back {
+                    let flipped = flip_weight(&w, c.cout, c.cin, c.kh, c.kw);
+                    let gx = direct_forward_with(&gy, &flipped, None, &back, isa, channels);
+                    let e = err(&gx, &gx_ref);
+                    assert!(e <= 1e-5, "{name} channels {channels}: grad x error {e:e}");
+                }
+            }
+            if back.is_none() {
+                let e = err(&direct_col2im(&gy, &w, &g, isa), &gx_ref);
+                assert!(e <= 1e-5, "{name}: col2im grad x error {e:e}");
+            }
+            let e = err(&direct_weight_grad(&x, &gy, &g, isa), &gw_ref);
+            assert!(e <= 1e-5, "{name}: grad w error {e:e}");
+        }
+    }
+
+    /// The layers of the small model (batch 2) through the direct kernels.
+    #[test]
+    fn direct_kernels_match_naive_on_narrow_layers() {
+        for c in [
+            case(2, 16, 16, (96, 96), (3, 3), 1, 1),
+            case(2, 32, 16, (48, 48), (3, 3), 1, 1),
+            case(2, 32, 32, (24, 24), (3, 3), 1, 1),
+            case(2, 32, 32, (12, 12), (3, 3), 1, 1),
+            case(2, 32, 32, (6, 6), (3, 3), 1, 1),
+            case(2, 32, 32, (3, 3), (3, 3), 1, 1),
+            case(2, 16, 32, (24, 24), (3, 3), 1, 1),
+            case(2, 64, 32, (6, 6), (3, 3), 1, 1),
+            case(2, 64, 32, (3, 3), (3, 3), 1, 1),
+            case(2, 64, 64, (6, 6), (3, 3), 2, 1),
+            case(2, 16, 6, (96, 96), (1, 1), 1, 0),
+            case(2, 32, 32, (48, 48), (1, 1), 1, 0),
+            case(2, 32, 32, (6, 6), (1, 1), 1, 0),
+            case(2, 64, 16, (6, 6), (1, 1), 1, 0),
+            case(2, 9, 16, (96, 96), (4, 4), 4, 0),
+            case(2, 16, 32, (24, 24), (2, 2), 2, 0),
+            case(2, 64, 64, (6, 6), (2, 2), 2, 0),
+            case(1, 3, 64, (96, 96), (16, 16), 16, 0),
+        ] {
+            check_direct(c);
+        }
+    }
+
+    /// The direct kernels on odd shapes: channel counts off the register blocks, rectangular
+    /// kernels and images, strides with padding, 1×1 convolutions with padding (col2im at
+    /// stride 1) and unpadded ones whose last vector would run past the input, an empty batch.
+    #[test]
+    fn direct_kernels_match_naive_on_odd_shapes() {
+        for c in [
+            case(2, 3, 5, (7, 9), (3, 3), 1, 1),
+            case(2, 3, 5, (7, 9), (3, 2), 1, 1),
+            case(2, 3, 5, (9, 8), (2, 3), 2, 1),
+            case(1, 5, 17, (11, 13), (3, 3), 3, 2),
+            case(2, 3, 6, (13, 10), (1, 1), 1, 0),
+            case(2, 3, 5, (7, 9), (1, 1), 1, 1),
+            case(2, 4, 7, (23, 25), (3, 3), 1, 0),
+            case(1, 3, 70, (9, 9), (3, 3), 1, 1),
+            case(2, 20, 9, (40, 31), (1, 1), 1, 0),
+            case(2, 5, 8, (13, 11), (1, 1), 1, 0),
+            case(2, 3, 5, (1, 1), (3, 3), 1, 1),
+            case(0, 3, 5, (7, 9), (3, 3), 1, 1),
+        ] {
+            check_direct(c);
+        }
     }
 
     /// Gradients flow to the weight and bias only when the input does not track one.
