@@ -118,7 +118,8 @@ fn main() -> anyhow::Result<()> {
         let lt: Vec<Tensor> = leaves.iter().map(|v| v.as_tensor().clone()).collect();
         let t0 = Instant::now();
         let pred = model.tail_unclipped(&lt, &src, &p)?;
-        let loss = |pred: &Tensor| pixl_train::loss::loss(pred, &tgt, &Objective::l1_only());
+        let loss =
+            |pred: &Tensor| pixl_train::loss::loss(pred, &tgt, &Objective::l1_only()).map_err(anyhow::Error::from);
         let total = loss(&pred)?.total;
         let t1 = Instant::now();
         let _store = total.backward()?;
