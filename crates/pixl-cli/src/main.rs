@@ -112,6 +112,7 @@ pixl completions zsh > ~/.zfunc/_pixl\n  pixl completions fish > ~/.config/fish/
 
 fn main() -> ExitCode {
     pixl_nn::prefer_rayon_pool();
+    pixl_nn::recycle_freed_buffers();
     let cli = Cli::parse();
     ctx::install_signal_handler();
     init_logging(cli.quiet);

@@ -80,3 +80,27 @@ pub fn prefer_rayon_pool() {
         std::env::set_var("CANDLE_NUM_THREADS", "1");
     }
 }
+
+/// Keeps freed blocks of up to 32 MiB in the allocator for reuse, rather than returning them to
+/// the system at once. glibc hands blocks above a threshold (128 KiB at first, adapting upwards)
+/// to `mmap`, so every activation or gradient of a training step arrives as fresh pages, and
+/// touching a fresh page costs about 2 µs: a narrow convolution's backward pass spent 19 ms of
+/// its 22 ms there. With the threshold at 32 MiB those buffers are recycled (the same as
+/// `GLIBC_TUNABLES=glibc.malloc.mmap_threshold=33554432`); memory above 64 MiB at the top of
+/// the heap is still trimmed. Does nothing outside glibc, and leaves a threshold the
+/// environment sets. Call at the start of `main`, as [`prefer_rayon_pool`].
+pub fn recycle_freed_buffers() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        let tunables = std::env::var("GLIBC_TUNABLES").unwrap_or_default();
+        if tunables.contains("mmap_threshold") || std::env::var_os("MALLOC_MMAP_THRESHOLD_").is_some() {
+            return;
+        }
+        // SAFETY: mallopt only changes the allocator's parameters; glibc documents it as callable
+        // at any time.
+        unsafe {
+            libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+            libc::mallopt(libc::M_TRIM_THRESHOLD, 64 << 20);
+        }
+    }
+}
