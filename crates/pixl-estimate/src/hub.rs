@@ -135,9 +135,10 @@ const DA3_FILES: &[ModelFile] = &[
     ModelFile::new("model.safetensors", 1_400_000_000),
 ];
 
-/// A Marigold-IID v1.1 checkpoint in the diffusers layout; the weights are fetched as their
-/// `.fp16` variants (half the download, upcast to f32 on load), the f32 files serve as well.
-const MARIGOLD_IID_FILES: &[ModelFile] = &[
+/// A Marigold v1.1 checkpoint (IID or normals) in the diffusers layout; the weights are fetched
+/// as their `.fp16` variants (half the download, upcast to f32 on load), the f32 files serve as
+/// well.
+const MARIGOLD_FILES: &[ModelFile] = &[
     ModelFile::new("model_index.json", 1_000),
     ModelFile::new("scheduler/scheduler_config.json", 1_000),
     ModelFile::new("unet/config.json", 2_000),
@@ -204,7 +205,7 @@ pub const REGISTRY: &[ModelSpec] = &[
         name: "marigold-appearance",
         repo: "prs-eth/marigold-iid-appearance-v1-1",
         revision: "main",
-        files: MARIGOLD_IID_FILES,
+        files: MARIGOLD_FILES,
         licence: "OpenRAIL++-M",
         licence_url: "https://huggingface.co/prs-eth/marigold-iid-appearance-v1-1",
         purpose: "Marigold-IID Appearance: albedo (sRGB), roughness and metallicity of a photo's materials",
@@ -213,10 +214,19 @@ pub const REGISTRY: &[ModelSpec] = &[
         name: "marigold-lighting",
         repo: "prs-eth/marigold-iid-lighting-v1-1",
         revision: "main",
-        files: MARIGOLD_IID_FILES,
+        files: MARIGOLD_FILES,
         licence: "OpenRAIL++-M",
         licence_url: "https://huggingface.co/prs-eth/marigold-iid-lighting-v1-1",
         purpose: "Marigold-IID Lighting: albedo, diffuse shading and non-diffuse residual of a photo (linear)",
+    },
+    ModelSpec {
+        name: "marigold-normals",
+        repo: "prs-eth/marigold-normals-v1-1",
+        revision: "main",
+        files: MARIGOLD_FILES,
+        licence: "Apache-2.0",
+        licence_url: "https://huggingface.co/prs-eth/marigold-normals-v1-1",
+        purpose: "Marigold Normals: camera-space surface normals of a photo (x right, y up, z towards the viewer)",
     },
     ModelSpec {
         name: "pixlrelight",

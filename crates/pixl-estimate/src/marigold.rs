@@ -22,6 +22,10 @@
 //!    `torch.median`) or the mean;
 //! 6. bilinear resize (no antialiasing) back to the photo's size.
 //!
+//! A Marigold **normals** checkpoint (`MarigoldNormalsPipeline`, [`PipelineKind::Normals`]) loads
+//! through the same [`Marigold::load`] (one target, UNet 8 → 4); its decoding and ensembling are
+//! [`normals`]'s, and [`Marigold::predict`] refuses it.
+//!
 //! Noise comes from [`pixl_core::rng::Rng`] seeded by [`MarigoldOptions::seed`] (the same seed
 //! gives the same maps); [`Marigold::predict_with_noise`] takes it from the caller instead (the
 //! parity tests feed the official pipeline's noise). Everything runs in f32; `.fp16.safetensors`
@@ -30,11 +34,12 @@
 //! One known difference from diffusers: the reused UNet's GEGLU feed-forward uses the tanh
 //! approximation of GELU where PyTorch uses the exact erf form (up to ~1e-3 per activation).
 pub mod config;
+pub mod normals;
 pub mod scheduler;
 pub mod text;
 pub mod vae;
 
-pub use config::{PipelineConfig, PredictionSpace, Target, TextConfig, UnetConfig, VaeConfig};
+pub use config::{PipelineConfig, PipelineKind, PredictionSpace, Target, TextConfig, UnetConfig, VaeConfig};
 pub use scheduler::{Ddim, SchedulerConfig};
 
 use crate::error::EstimateError;
@@ -178,7 +183,7 @@ impl CheckpointFiles {
                 Err(EstimateError::Config {
                     path: dir.to_owned(),
                     reason: format!(
-                        "not a Marigold-IID checkpoint folder: `{rel}` is missing (expected the diffusers layout: \
+                        "not a Marigold checkpoint folder: `{rel}` is missing (expected the diffusers layout: \
 model_index.json, scheduler/, unet/, vae/, text_encoder/, tokenizer/)"
                     ),
                 })
@@ -250,7 +255,7 @@ fn building(path: &Path) -> impl Fn(candle_core::Error) -> EstimateError + '_ {
     }
 }
 
-/// A loaded Marigold-IID checkpoint.
+/// A loaded Marigold checkpoint: IID, or normals ([`PipelineConfig::kind`]).
 pub struct Marigold {
     pipeline: PipelineConfig,
     variant: Option<IidVariant>,
@@ -478,8 +483,14 @@ impl Marigold {
 
     /// Step 4 for one target latent `(1, 4, h, w)`: `(1, 3, 8h, 8w)` in [0, 1].
     pub fn decode(&self, latent: &Tensor) -> Result<Tensor, EstimateError> {
-        let x = self.decoder.decode(&(latent / self.vae_cfg.scaling_factor)?)?;
+        let x = self.decode_raw(latent)?;
         Ok(((x.clamp(-1f32, 1f32)? + 1.0)? / 2.0)?)
+    }
+
+    /// The VAE's decoding of one target latent `(1, 4, h, w)` as it comes: `(1, 3, 8h, 8w)`,
+    /// not clipped.
+    pub fn decode_raw(&self, latent: &Tensor) -> Result<Tensor, EstimateError> {
+        Ok(self.decoder.decode(&(latent / self.vae_cfg.scaling_factor)?)?)
     }
 
     /// The whole pipeline with noise from [`MarigoldOptions::seed`].
@@ -509,6 +520,11 @@ impl Marigold {
         noise: &Tensor,
         progress: &mut dyn FnMut(Progress),
     ) -> Result<IidPrediction, EstimateError> {
+        if self.pipeline.kind == PipelineKind::Normals {
+            return Err(EstimateError::Input(
+                "this is a Marigold normals checkpoint: run it with marigold::normals::MarigoldNormals".into(),
+            ));
+        }
         let (steps, res) = self.resolve(opts)?;
         let pre = self.preprocess(photo, res)?;
         let (_, _, hh, ww) = pre.image.dims4()?;

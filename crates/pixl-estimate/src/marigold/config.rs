@@ -4,7 +4,8 @@
 //! `UNet2DConditionModelConfig`), `vae/config.json` and `text_encoder/config.json`.
 //!
 //! Every `Err` is a sentence naming the key that is missing or not supported, so a folder of
-//! another model (a depth or normals Marigold, Stable Diffusion itself) is refused up front.
+//! another model (a depth Marigold, Stable Diffusion itself) is refused up front. A normals
+//! checkpoint is read too: [`PipelineKind`] tells the two pipelines apart.
 use candle_transformers::models::stable_diffusion::unet_2d::{BlockConfig, UNet2DConditionModelConfig};
 use serde_json::{Map, Value};
 
@@ -85,6 +86,34 @@ pub enum PredictionSpace {
     Linear,
     /// Three single-channel maps stacked as RGB (Appearance "material": roughness, metallicity).
     Stack,
+    /// Unit surface normals in [−1, 1], camera space (the normals pipeline's one target).
+    Normals,
+}
+
+/// Which Marigold pipeline a checkpoint is, from `model_index.json`'s `_class_name`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PipelineKind {
+    /// `MarigoldIntrinsicsPipeline` (`prediction_type` "intrinsics"): Marigold-IID.
+    Intrinsics,
+    /// `MarigoldNormalsPipeline` (`prediction_type` "normals"): one 3-channel normals target.
+    Normals,
+}
+
+impl PipelineKind {
+    /// The diffusers pipeline class.
+    pub fn class_name(self) -> &'static str {
+        match self {
+            PipelineKind::Intrinsics => "MarigoldIntrinsicsPipeline",
+            PipelineKind::Normals => "MarigoldNormalsPipeline",
+        }
+    }
+
+    fn prediction_type(self) -> &'static str {
+        match self {
+            PipelineKind::Intrinsics => "intrinsics",
+            PipelineKind::Normals => "normals",
+        }
+    }
 }
 
 /// One predicted target (one 4-channel latent, one RGB decode).
@@ -98,28 +127,57 @@ pub struct Target {
     pub up_to_scale: bool,
 }
 
-/// `model_index.json` of a `MarigoldIntrinsicsPipeline` checkpoint.
+/// `model_index.json` of a `MarigoldIntrinsicsPipeline` or `MarigoldNormalsPipeline` checkpoint.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PipelineConfig {
+    pub kind: PipelineKind,
+    /// IID: from `target_properties`; normals: one target `normals` ([`PredictionSpace::Normals`]).
     pub targets: Vec<Target>,
     pub default_steps: Option<usize>,
     pub default_resolution: Option<usize>,
+    /// Normals: whether the decoded z spans [−1, 1] (`true`, diffusers' default) or only [0, 1]
+    /// (`false`: the decoded z is mapped by `z/2 + 1/2`). Always `true` for IID.
+    pub use_full_z_range: bool,
 }
 
 impl PipelineConfig {
     pub fn from_json(text: &str) -> Result<Self, String> {
         let o = parse(text)?;
         let class = str_of(&o, "_class_name").unwrap_or("");
-        if class != "MarigoldIntrinsicsPipeline" {
-            return Err(format!(
-                "_class_name {class:?}: not a Marigold intrinsics (IID) checkpoint, which is a \
-MarigoldIntrinsicsPipeline"
-            ));
-        }
+        let kind = [PipelineKind::Intrinsics, PipelineKind::Normals]
+            .into_iter()
+            .find(|k| k.class_name() == class)
+            .ok_or_else(|| {
+                format!(
+                    "_class_name {class:?}: not a Marigold intrinsics (IID) checkpoint, which is a \
+MarigoldIntrinsicsPipeline, nor a Marigold normals one (MarigoldNormalsPipeline)"
+                )
+            })?;
         if let Some(p) = str_of(&o, "prediction_type") {
-            if p != "intrinsics" {
-                return Err(format!("prediction_type {p:?}: expected \"intrinsics\""));
+            if p != kind.prediction_type() {
+                return Err(format!(
+                    "prediction_type {p:?}: expected {:?} for a {class}",
+                    kind.prediction_type()
+                ));
             }
+        }
+        let default_steps = usize_of(&o, "default_denoising_steps", Some(0)).ok().filter(|s| *s > 0);
+        let default_resolution = usize_of(&o, "default_processing_resolution", Some(0))
+            .ok()
+            .filter(|s| *s > 0);
+        if kind == PipelineKind::Normals {
+            return Ok(Self {
+                kind,
+                targets: vec![Target {
+                    name: "normals".into(),
+                    space: PredictionSpace::Normals,
+                    sub_targets: Vec::new(),
+                    up_to_scale: false,
+                }],
+                default_steps,
+                default_resolution,
+                use_full_z_range: bool_of(&o, "use_full_z_range", true)?,
+            });
         }
         let props = o
             .get("target_properties")
@@ -161,11 +219,11 @@ MarigoldIntrinsicsPipeline"
             });
         }
         Ok(Self {
+            kind,
             targets,
-            default_steps: usize_of(&o, "default_denoising_steps", Some(0)).ok().filter(|s| *s > 0),
-            default_resolution: usize_of(&o, "default_processing_resolution", Some(0))
-                .ok()
-                .filter(|s| *s > 0),
+            default_steps,
+            default_resolution,
+            use_full_z_range: true,
         })
     }
 
