@@ -14,7 +14,7 @@
 //!    (`h·res // max(h, w)`), replicate-pad right/bottom to a multiple of the VAE factor (8);
 //! 2. VAE posterior **mode** × `scaling_factor` ([`vae`]);
 //! 3. per ensemble member, from Gaussian noise: `steps` DDIM updates ([`scheduler`]) of the UNet
-//!    (candle-transformers' SD2 `UNet2DConditionModel`, widened input/output) on
+//!    (diffusers' SD2-family `UNet2DConditionModel`, widened input/output, [`unet`]) on
 //!    `cat[image_latent, target_latents]` with the empty-prompt embedding ([`text`]);
 //! 4. each target's 4 latent channels decoded by the VAE, clipped to [−1, 1], `(x + 1)/2`,
 //!    padding removed;
@@ -29,24 +29,22 @@
 //! Noise comes from [`pixl_core::rng::Rng`] seeded by [`MarigoldOptions::seed`] (the same seed
 //! gives the same maps); [`Marigold::predict_with_noise`] takes it from the caller instead (the
 //! parity tests feed the official pipeline's noise). Everything runs in f32; `.fp16.safetensors`
-//! weight variants are upcast on load.
-//!
-//! One known difference from diffusers: the reused UNet's GEGLU feed-forward uses the tanh
-//! approximation of GELU where PyTorch uses the exact erf form (up to ~1e-3 per activation).
+//! weight variants are upcast on load ([`weights`]: memory-mapped, converted in parallel).
 pub mod config;
 pub mod normals;
 pub mod scheduler;
 pub mod text;
+pub mod unet;
 pub mod vae;
+pub mod weights;
 
 pub use config::{PipelineConfig, PipelineKind, PredictionSpace, Target, TextConfig, UnetConfig, VaeConfig};
 pub use scheduler::{Ddim, SchedulerConfig};
 
 use crate::error::EstimateError;
 use crate::resize;
-use candle_core::{DType, Device, Tensor};
+use candle_core::{Device, Tensor};
 use candle_nn::VarBuilder;
-use candle_transformers::models::stable_diffusion::unet_2d::UNet2DConditionModel;
 use pixl_core::Image;
 use std::path::{Path, PathBuf};
 
@@ -240,11 +238,7 @@ fn config<T>(path: &Path, parse: impl FnOnce(&str) -> Result<T, String>) -> Resu
 }
 
 fn var_builder(path: &Path, device: &Device) -> Result<VarBuilder<'static>, EstimateError> {
-    // SAFETY (mmap): the file is opened read-only and not modified while mapped.
-    unsafe { VarBuilder::from_mmaped_safetensors(&[path], DType::F32, device) }.map_err(|e| EstimateError::Weights {
-        path: path.to_owned(),
-        reason: e.to_string(),
-    })
+    weights::load(path, device)
 }
 
 /// Maps a candle error while building a network to one naming the weight file.
@@ -259,7 +253,7 @@ fn building(path: &Path) -> impl Fn(candle_core::Error) -> EstimateError + '_ {
 pub struct Marigold {
     pipeline: PipelineConfig,
     variant: Option<IidVariant>,
-    unet: UNet2DConditionModel,
+    unet: unet::UNet2DConditionModel,
     unet_cfg: UnetConfig,
     encoder: vae::VaeEncoder,
     decoder: vae::VaeDecoder,
@@ -292,12 +286,12 @@ impl Marigold {
                 ),
             });
         }
-        if unet_cfg.candle.cross_attention_dim != text_cfg.hidden_size {
+        if unet_cfg.cross_attention_dim != text_cfg.hidden_size {
             return Err(EstimateError::Config {
                 path: f.unet_config.clone(),
                 reason: format!(
                     "cross_attention_dim {} differs from the text encoder's hidden_size {}",
-                    unet_cfg.candle.cross_attention_dim, text_cfg.hidden_size
+                    unet_cfg.cross_attention_dim, text_cfg.hidden_size
                 ),
             });
         }
@@ -315,14 +309,8 @@ impl Marigold {
                 e
             }
         };
-        let unet = UNet2DConditionModel::new(
-            var_builder(&f.unet, device)?,
-            unet_cfg.in_channels,
-            unet_cfg.out_channels,
-            false,
-            unet_cfg.candle.clone(),
-        )
-        .map_err(building(&f.unet))?;
+        let unet =
+            unet::UNet2DConditionModel::new(&unet_cfg, var_builder(&f.unet, device)?).map_err(building(&f.unet))?;
         let vb = var_builder(&f.vae, device)?;
         let encoder = vae::VaeEncoder::new(&vae_cfg, vb.clone()).map_err(building(&f.vae))?;
         let decoder = vae::VaeDecoder::new(&vae_cfg, vb).map_err(building(&f.vae))?;
@@ -400,7 +388,7 @@ impl Marigold {
     /// released SD2-size networks, `None` for other sizes: per 768² pixels, VAE encoding 2.6,
     /// one UNet step 2.14, one target's VAE decoding 5.75 (analytic counts of the SD2 UNet and VAE).
     pub fn approx_tflop(&self, width: usize, height: usize, opts: &MarigoldOptions) -> Option<f64> {
-        let released = self.unet_cfg.candle.blocks.first()?.out_channels == 320
+        let released = self.unet_cfg.block_out_channels.first() == Some(&320)
             && self.vae_cfg.block_out_channels.first() == Some(&128);
         if !released {
             return None;

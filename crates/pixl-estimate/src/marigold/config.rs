@@ -1,12 +1,11 @@
 //! The configuration files of a diffusers-format Marigold-IID checkpoint, read and checked
 //! before any weight is touched: `model_index.json` (pipeline class, targets and their colour
-//! spaces, default steps and resolution), `unet/config.json` (mapped onto candle-transformers'
-//! `UNet2DConditionModelConfig`), `vae/config.json` and `text_encoder/config.json`.
+//! spaces, default steps and resolution), `unet/config.json` (the SD2-family
+//! `UNet2DConditionModel`, [`UnetConfig`]), `vae/config.json` and `text_encoder/config.json`.
 //!
 //! Every `Err` is a sentence naming the key that is missing or not supported, so a folder of
 //! another model (a depth Marigold, Stable Diffusion itself) is refused up front. A normals
 //! checkpoint is read too: [`PipelineKind`] tells the two pipelines apart.
-use candle_transformers::models::stable_diffusion::unet_2d::{BlockConfig, UNet2DConditionModelConfig};
 use serde_json::{Map, Value};
 
 type Obj = Map<String, Value>;
@@ -233,16 +232,106 @@ MarigoldIntrinsicsPipeline, nor a Marigold normals one (MarigoldNormalsPipeline)
     }
 }
 
-/// The UNet's `config.json`, mapped onto candle-transformers' config; refuses anything the SD2
-/// UNet of Marigold does not use.
-#[derive(Clone, Debug)]
+/// Which block a level of the UNet's encoder half is (diffusers' `down_block_types`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DownBlockType {
+    /// ResNets, each followed by a `Transformer2DModel`.
+    CrossAttnDownBlock2D,
+    /// ResNets only.
+    DownBlock2D,
+}
+
+/// Which block a level of the UNet's decoder half is (diffusers' `up_block_types`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum UpBlockType {
+    CrossAttnUpBlock2D,
+    UpBlock2D,
+}
+
+/// The UNet's `config.json` (diffusers `UNet2DConditionModel`), the Stable Diffusion 2 family:
+/// the fields keep diffusers' names, and those diffusers accepts as an int or a per-block list
+/// are stored per block. [`UnetConfig::from_json`] refuses every setting that changes the
+/// network beyond this family (class or addition embeddings, another mid block, dual or
+/// cross-only attention, per-layer transformer depths, …).
+#[derive(Clone, Debug, PartialEq)]
 pub struct UnetConfig {
     pub in_channels: usize,
     pub out_channels: usize,
-    pub candle: UNet2DConditionModelConfig,
+    /// `2x − 1` on the input before `conv_in`.
+    pub center_input_sample: bool,
+    /// The sinusoidal timestep embedding as `[cos, sin]` (true) or `[sin, cos]`.
+    pub flip_sin_to_cos: bool,
+    /// Frequencies `exp(−ln(10⁴)·k / (half − freq_shift))`.
+    pub freq_shift: f64,
+    pub down_block_types: Vec<DownBlockType>,
+    /// Listed from the lowest resolution up, as diffusers stores them.
+    pub up_block_types: Vec<UpBlockType>,
+    pub block_out_channels: Vec<usize>,
+    /// ResNets per down block (up blocks have one more), per block.
+    pub layers_per_block: Vec<usize>,
+    /// Padding of the stride-2 3×3 downsampling convolutions (0: one zero row and column added
+    /// at the bottom and right first, as diffusers does).
+    pub downsample_padding: usize,
+    /// The mid block's ResNets divide their output by this.
+    pub mid_block_scale_factor: f64,
+    /// GroupNorm groups of every ResNet, transformer input and `conv_norm_out`.
+    pub norm_num_groups: usize,
+    /// GroupNorm epsilon of the ResNets and `conv_norm_out` (the transformers' GroupNorm uses
+    /// 1e-6 and their LayerNorms 1e-5, as in diffusers).
+    pub norm_eps: f64,
+    /// Width of the text conditioning the cross-attention reads.
+    pub cross_attention_dim: usize,
+    /// `BasicTransformerBlock`s per `Transformer2DModel`, per block (the mid block uses the last).
+    pub transformer_layers_per_block: Vec<usize>,
+    /// Per block, the **number of attention heads** (the mid block uses the last): diffusers
+    /// reads `num_attention_heads or attention_head_dim` as the head count, refuses a non-null
+    /// `num_attention_heads`, and SD2 configs store the heads here (`[5, 10, 20, 20]`, heads of
+    /// dimension 64).
+    pub attention_head_dim: Vec<usize>,
+    /// `proj_in` / `proj_out` of the transformers as linear layers (true) or 1×1 convolutions.
+    pub use_linear_projection: bool,
+    /// diffusers computes the attention scores in f32 when set; without effect here (all f32).
+    pub upcast_attention: bool,
 }
 
 impl UnetConfig {
+    /// Stable Diffusion 2's UNet (`stabilityai/stable-diffusion-2`, the network Marigold
+    /// fine-tunes) with `in_channels` → `out_channels`.
+    pub fn sd2(in_channels: usize, out_channels: usize) -> Self {
+        use DownBlockType::*;
+        use UpBlockType::*;
+        Self {
+            in_channels,
+            out_channels,
+            center_input_sample: false,
+            flip_sin_to_cos: true,
+            freq_shift: 0.0,
+            down_block_types: vec![
+                CrossAttnDownBlock2D,
+                CrossAttnDownBlock2D,
+                CrossAttnDownBlock2D,
+                DownBlock2D,
+            ],
+            up_block_types: vec![UpBlock2D, CrossAttnUpBlock2D, CrossAttnUpBlock2D, CrossAttnUpBlock2D],
+            block_out_channels: vec![320, 640, 1280, 1280],
+            layers_per_block: vec![2; 4],
+            downsample_padding: 1,
+            mid_block_scale_factor: 1.0,
+            norm_num_groups: 32,
+            norm_eps: 1e-5,
+            cross_attention_dim: 1024,
+            transformer_layers_per_block: vec![1; 4],
+            attention_head_dim: vec![5, 10, 20, 20],
+            use_linear_projection: true,
+            upcast_attention: false,
+        }
+    }
+
+    /// Width of the time embedding: `4 · block_out_channels[0]`.
+    pub fn time_embed_dim(&self) -> usize {
+        4 * self.block_out_channels[0]
+    }
+
     pub fn from_json(text: &str) -> Result<Self, String> {
         let o = parse(text)?;
         let class = str_of(&o, "_class_name").unwrap_or("");
@@ -252,127 +341,202 @@ impl UnetConfig {
         for (k, ok) in [
             ("act_fn", "silu"),
             ("time_embedding_type", "positional"),
-            ("mid_block_type", "UNetMidBlock2DCrossAttn"),
             ("resnet_time_scale_shift", "default"),
+            ("attention_type", "default"),
         ] {
-            if let Some(v) = str_of(&o, k) {
-                if v != ok {
-                    return Err(format!("`{k}` {v:?} is not supported (expected {ok:?})"));
-                }
+            match o.get(k) {
+                None | Some(Value::Null) => {}
+                Some(Value::String(v)) if v == ok => {}
+                Some(v) => return Err(format!("`{k}` {v} is not supported (expected {ok:?})")),
+            }
+        }
+        match o.get("mid_block_type") {
+            None => {}
+            Some(Value::String(v)) if v == "UNetMidBlock2DCrossAttn" => {}
+            Some(Value::Null) => {
+                return Err("`mid_block_type` null (a UNet without a mid block) is not supported".into())
+            }
+            Some(v) => {
+                return Err(format!(
+                    "`mid_block_type` {v} is not supported (expected \"UNetMidBlock2DCrossAttn\")"
+                ))
             }
         }
         for k in [
             "class_embed_type",
             "addition_embed_type",
+            "addition_time_embed_dim",
             "encoder_hid_dim",
+            "encoder_hid_dim_type",
             "time_cond_proj_dim",
             "num_class_embeds",
+            "projection_class_embeddings_input_dim",
+            "time_embedding_dim",
+            "time_embedding_act_fn",
+            "timestep_post_act",
+            "cross_attention_norm",
+            "reverse_transformer_layers_per_block",
         ] {
             if o.get(k).is_some_and(|v| !v.is_null()) {
                 return Err(format!("`{k}` is set; this UNet variant is not supported"));
             }
         }
-        for k in ["dual_cross_attention", "only_cross_attention", "center_input_sample"] {
+        if o.get("num_attention_heads").is_some_and(|v| !v.is_null()) {
+            return Err(
+                "`num_attention_heads` is set: diffusers refuses it too (the head count is read from \
+`attention_head_dim`)"
+                    .into(),
+            );
+        }
+        for k in [
+            "dual_cross_attention",
+            "class_embeddings_concat",
+            "resnet_skip_time_act",
+            "mid_block_only_cross_attention",
+        ] {
             if bool_of(&o, k, false)? {
                 return Err(format!("`{k}` true is not supported"));
             }
         }
-        let channels = usize_list(&o, "block_out_channels")?;
-        let down = str_list(&o, "down_block_types")?;
-        let up = str_list(&o, "up_block_types")?;
-        let n = channels.len();
-        if n == 0 || down.len() != n || up.len() != n {
+        match o.get("only_cross_attention") {
+            None | Some(Value::Null) | Some(Value::Bool(false)) => {}
+            Some(Value::Array(a)) if a.iter().all(|v| v == &Value::Bool(false)) => {}
+            Some(v) => return Err(format!("`only_cross_attention` {v} is not supported (only false)")),
+        }
+        for k in ["conv_in_kernel", "conv_out_kernel"] {
+            let v = usize_of(&o, k, Some(3))?;
+            if v != 3 {
+                return Err(format!("`{k}` {v} is not supported (expected 3)"));
+            }
+        }
+        let out_scale = f64_of(&o, "resnet_out_scale_factor", 1.0)?;
+        if out_scale != 1.0 {
+            return Err(format!(
+                "`resnet_out_scale_factor` {out_scale} is not supported (expected 1)"
+            ));
+        }
+
+        let block_out_channels = usize_list(&o, "block_out_channels")?;
+        let n = block_out_channels.len();
+        let down_block_types = str_list(&o, "down_block_types")?
+            .iter()
+            .enumerate()
+            .map(|(i, t)| match t.as_str() {
+                "CrossAttnDownBlock2D" => Ok(DownBlockType::CrossAttnDownBlock2D),
+                "DownBlock2D" => Ok(DownBlockType::DownBlock2D),
+                other => Err(format!("down_block_types[{i}] {other:?} is not supported")),
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let up_block_types = str_list(&o, "up_block_types")?
+            .iter()
+            .enumerate()
+            .map(|(i, t)| match t.as_str() {
+                "CrossAttnUpBlock2D" => Ok(UpBlockType::CrossAttnUpBlock2D),
+                "UpBlock2D" => Ok(UpBlockType::UpBlock2D),
+                other => Err(format!("up_block_types[{i}] {other:?} is not supported")),
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        if n == 0 || down_block_types.len() != n || up_block_types.len() != n {
             return Err(format!(
                 "block_out_channels ({n}), down_block_types ({}) and up_block_types ({}) must have the same positive length",
-                down.len(),
-                up.len()
+                down_block_types.len(),
+                up_block_types.len()
             ));
         }
-        let layers = |k: &str| -> Result<Vec<usize>, String> {
-            match o.get(k) {
-                None | Some(Value::Null) => Ok(vec![1; n]),
-                Some(Value::Number(x)) => Ok(vec![x.as_u64().unwrap_or(1) as usize; n]),
-                Some(Value::Array(_)) => {
-                    let v = usize_list(&o, k)?;
-                    if v.len() == n {
-                        Ok(v)
-                    } else {
-                        Err(format!("`{k}` must have one entry per block ({n})"))
-                    }
-                }
-                Some(v) => Err(format!("`{k}` must be an integer or a list, found {v}")),
-            }
-        };
-        let transformer_layers = layers("transformer_layers_per_block")?;
-        // diffusers: `num_attention_heads or attention_head_dim` (SD2 stores heads in the latter).
-        let heads_key = if o.get("num_attention_heads").is_some_and(|v| !v.is_null()) {
-            "num_attention_heads"
-        } else {
-            "attention_head_dim"
-        };
-        let heads = layers(heads_key)?;
-        let mut blocks = Vec::with_capacity(n);
-        for i in 0..n {
-            let cross = match down[i].as_str() {
-                "CrossAttnDownBlock2D" => true,
-                "DownBlock2D" => false,
-                other => return Err(format!("down_block_types[{i}] {other:?} is not supported")),
-            };
-            let want_up = if cross { "CrossAttnUpBlock2D" } else { "UpBlock2D" };
-            if up[n - 1 - i] != want_up {
-                return Err(format!(
-                    "up_block_types[{}] {:?} does not mirror down_block_types[{i}] {:?}",
-                    n - 1 - i,
-                    up[n - 1 - i],
-                    down[i]
-                ));
-            }
-            if heads[i] == 0 || channels[i] % heads[i] != 0 {
-                return Err(format!(
-                    "{heads_key}[{i}] = {} does not divide block_out_channels[{i}] = {}",
-                    heads[i], channels[i]
-                ));
-            }
-            blocks.push(BlockConfig {
-                out_channels: channels[i],
-                use_cross_attn: cross.then_some(transformer_layers[i]),
-                attention_head_dim: heads[i],
-            });
+        if let Some(i) = block_out_channels.iter().position(|&c| c == 0) {
+            return Err(format!("block_out_channels[{i}] is 0"));
         }
-        // candle-transformers 0.11.1's DownBlock2D / UpBlock2D build their ResNets with 32
-        // groups whatever the config says; SD2 (and so Marigold) uses 32.
-        let norm_num_groups = usize_of(&o, "norm_num_groups", Some(32))?;
-        if norm_num_groups != 32 {
-            return Err(format!(
-                "norm_num_groups {norm_num_groups} is not supported (the SD2 UNet uses 32)"
-            ));
-        }
-        if channels.iter().any(|c| c % norm_num_groups != 0) {
-            return Err(format!(
-                "norm_num_groups {norm_num_groups} must divide every block's channels"
-            ));
-        }
-        let candle = UNet2DConditionModelConfig {
-            center_input_sample: false,
-            flip_sin_to_cos: bool_of(&o, "flip_sin_to_cos", true)?,
-            freq_shift: f64_of(&o, "freq_shift", 0.0)?,
-            blocks,
-            layers_per_block: usize_of(&o, "layers_per_block", Some(2))?,
-            downsample_padding: usize_of(&o, "downsample_padding", Some(1))?,
-            mid_block_scale_factor: f64_of(&o, "mid_block_scale_factor", 1.0)?,
-            norm_num_groups,
-            norm_eps: f64_of(&o, "norm_eps", 1e-5)?,
-            cross_attention_dim: usize_of(&o, "cross_attention_dim", Some(1280))?,
-            // candle-transformers 0.11.1's sliced attention fails on shapes (rank error), so the
-            // full score matrix is formed: heads × N² f32, about 1 GB at 768 px (N = 96·72).
-            sliced_attention_size: None,
-            use_linear_projection: bool_of(&o, "use_linear_projection", false)?,
-        };
-        Ok(Self {
+        let cfg = Self {
             in_channels: usize_of(&o, "in_channels", Some(4))?,
             out_channels: usize_of(&o, "out_channels", Some(4))?,
-            candle,
-        })
+            center_input_sample: bool_of(&o, "center_input_sample", false)?,
+            flip_sin_to_cos: bool_of(&o, "flip_sin_to_cos", true)?,
+            freq_shift: f64_of(&o, "freq_shift", 0.0)?,
+            down_block_types,
+            up_block_types,
+            layers_per_block: per_block(&o, "layers_per_block", 2, n)?,
+            downsample_padding: usize_of(&o, "downsample_padding", Some(1))?,
+            mid_block_scale_factor: f64_of(&o, "mid_block_scale_factor", 1.0)?,
+            norm_num_groups: match o.get("norm_num_groups") {
+                Some(Value::Null) => return Err("`norm_num_groups` null (no GroupNorm) is not supported".into()),
+                _ => usize_of(&o, "norm_num_groups", Some(32))?,
+            },
+            norm_eps: f64_of(&o, "norm_eps", 1e-5)?,
+            cross_attention_dim: match o.get("cross_attention_dim") {
+                Some(Value::Array(_)) => {
+                    return Err("a per-block `cross_attention_dim` list is not supported (give one integer)".into())
+                }
+                _ => usize_of(&o, "cross_attention_dim", Some(1280))?,
+            },
+            transformer_layers_per_block: per_block(&o, "transformer_layers_per_block", 1, n)?,
+            attention_head_dim: per_block(&o, "attention_head_dim", 8, n)?,
+            use_linear_projection: bool_of(&o, "use_linear_projection", false)?,
+            upcast_attention: bool_of(&o, "upcast_attention", false)?,
+            block_out_channels,
+        };
+        cfg.check()?;
+        Ok(cfg)
+    }
+
+    /// The checks that need several fields: group and head counts that divide the widths they
+    /// split, positive sizes.
+    fn check(&self) -> Result<(), String> {
+        let g = self.norm_num_groups;
+        if g == 0 || self.block_out_channels.iter().any(|c| !c.is_multiple_of(g)) {
+            return Err(format!(
+                "norm_num_groups {g} must divide every block's channels {:?}",
+                self.block_out_channels
+            ));
+        }
+        if self.in_channels == 0 || self.out_channels == 0 || self.cross_attention_dim == 0 {
+            return Err("in_channels, out_channels and cross_attention_dim must be positive".into());
+        }
+        let n = self.block_out_channels.len();
+        let attention = (0..n)
+            .filter(|&i| {
+                self.down_block_types[i] == DownBlockType::CrossAttnDownBlock2D
+                    || self.up_block_types[n - 1 - i] == UpBlockType::CrossAttnUpBlock2D
+            })
+            .chain([n - 1]); // the mid block
+        for i in attention {
+            let (heads, c) = (self.attention_head_dim[i], self.block_out_channels[i]);
+            if heads == 0 || c % heads != 0 {
+                return Err(format!(
+                    "attention_head_dim[{i}] = {heads} (the number of heads) does not divide block_out_channels[{i}] = {c}"
+                ));
+            }
+            if self.transformer_layers_per_block[i] == 0 {
+                return Err(format!("transformer_layers_per_block[{i}] is 0"));
+            }
+        }
+        if let Some(i) = self.layers_per_block.iter().position(|&l| l == 0) {
+            return Err(format!("layers_per_block[{i}] is 0"));
+        }
+        Ok(())
+    }
+}
+
+/// A setting diffusers takes as an int (the same for every block) or a list with one integer
+/// per block; nested lists (per layer) are refused.
+fn per_block(o: &Obj, k: &str, default: usize, n: usize) -> Result<Vec<usize>, String> {
+    match o.get(k) {
+        None | Some(Value::Null) => Ok(vec![default; n]),
+        Some(Value::Number(x)) => x
+            .as_u64()
+            .map(|x| vec![x as usize; n])
+            .ok_or_else(|| format!("`{k}` must be a non-negative integer, found {x}")),
+        Some(Value::Array(a)) if a.iter().any(Value::is_array) => Err(format!(
+            "`{k}` with one entry per layer (nested lists) is not supported"
+        )),
+        Some(Value::Array(_)) => {
+            let v = usize_list(o, k)?;
+            if v.len() == n {
+                Ok(v)
+            } else {
+                Err(format!("`{k}` must have one entry per block ({n}), found {}", v.len()))
+            }
+        }
+        Some(v) => Err(format!("`{k}` must be an integer or a list, found {v}")),
     }
 }
 
