@@ -1,15 +1,19 @@
 //! The estimators the pipeline plugs in: [`Da3Depth`] runs Depth Anything 3 (metric or mono,
 //! `pixl_estimate::da3`) as a [`DepthEstimator`]; [`MarigoldLighting`] runs Marigold-IID-Lighting
-//! (`pixl_estimate::marigold`) as a [`LightingEstimator`]. Where their weights come from (a
-//! models folder, the Hugging Face cache, a download with the licence shown) is the caller's
-//! business: it hands over the folder that holds them, or the loaded model.
+//! (`pixl_estimate::marigold`) as a [`LightingEstimator`]; [`MarigoldNormalsEstimator`] runs
+//! Marigold Normals (`pixl_estimate::marigold::normals`) as a [`NormalsEstimator`]. Where their
+//! weights come from (a models folder, the Hugging Face cache, a download with the licence
+//! shown) is the caller's business: it hands over the folder that holds them, or the loaded
+//! model.
 use crate::depth::{DepthEstimator, DepthKind, EstimatedDepth};
 use crate::error::{PipelineError, Result};
 use crate::like::{Decomposition, LightingEstimator};
+use crate::normals::{scene_from_marigold, NormalsEstimator};
 use crate::observe::{Observer, Stage};
 use candle_core::Device;
 use pixl_core::Image;
 use pixl_estimate::da3::{Da3, Da3Options, Da3Variant};
+use pixl_estimate::marigold::normals::{MarigoldNormals, NormalsOptions};
 use pixl_estimate::marigold::{IidPrediction, IidVariant, Marigold};
 use pixl_render::depth::DepthMap;
 use std::path::Path;
@@ -200,6 +204,54 @@ impl LightingEstimator for MarigoldLighting {
             })
             .map_err(PipelineError::from)?;
         Decomposition::from_prediction(&pred)
+    }
+}
+
+/// Marigold Normals (`prs-eth/marigold-normals-v1-1`, Apache-2.0) as a [`NormalsEstimator`]:
+/// its camera-frame normals are given in the scene's frame ([`scene_from_marigold`]).
+pub struct MarigoldNormalsEstimator {
+    net: MarigoldNormals,
+    /// Steps, resolution, ensemble, reduction and seed of every estimate.
+    pub options: NormalsOptions,
+    /// How the checkpoint is named in messages (`marigold-normals`).
+    pub label: String,
+}
+
+impl MarigoldNormalsEstimator {
+    pub fn new(net: MarigoldNormals, options: NormalsOptions, label: &str) -> MarigoldNormalsEstimator {
+        MarigoldNormalsEstimator {
+            net,
+            options,
+            label: label.to_string(),
+        }
+    }
+
+    /// Loads the checkpoint in `dir` (the official diffusers layout) on `device`; an IID
+    /// checkpoint is refused.
+    pub fn load(dir: &Path, options: NormalsOptions, label: &str, device: &Device) -> Result<MarigoldNormalsEstimator> {
+        let net = MarigoldNormals::load(dir, device)
+            .map_err(|e| PipelineError::from(e).context(format!("loading `{label}` from {}", dir.display())))?;
+        Ok(Self::new(net, options, label))
+    }
+
+    pub fn model(&self) -> &MarigoldNormals {
+        &self.net
+    }
+}
+
+impl NormalsEstimator for MarigoldNormalsEstimator {
+    fn name(&self) -> String {
+        format!("Marigold Normals ({})", self.label)
+    }
+
+    fn estimate(&self, photo: &Image, observer: &dyn Observer) -> Result<Image> {
+        let pred = self
+            .net
+            .predict(photo, &self.options, &mut |p| {
+                observer.progress(Stage::Normals, p.done as u64, p.total as u64)
+            })
+            .map_err(PipelineError::from)?;
+        Ok(scene_from_marigold(&pred.normals))
     }
 }
 

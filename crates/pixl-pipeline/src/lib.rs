@@ -11,6 +11,8 @@
 //!   trait, with Depth Anything 3 behind it in [`estimators`].
 //! - [`reconstruct`]: photo + metric depth (+ material maps) → [`reconstruct::Geometry`], in
 //!   memory, written as a scene folder only when asked.
+//! - [`normals`]: the mesh's shading normals from a normal map, read from a file or estimated
+//!   by a [`normals::NormalsEstimator`] (Marigold Normals in [`estimators`]).
 //! - [`lights`]: one light as the user says it ([`lights::LightSpec`]), placed in the scene.
 //! - [`render`]: the scene under its lights → passes → C_T.
 //! - [`relight`]: the network ([`relight::Network`]: ours, the paper's released checkpoint, or
@@ -35,6 +37,7 @@ pub mod exif;
 pub mod job;
 pub mod lights;
 pub mod like;
+pub mod normals;
 pub mod observe;
 pub mod photo;
 pub mod reconstruct;

@@ -14,6 +14,8 @@ pub enum Stage {
     /// Estimating a photo's intrinsics (albedo, shading, residual; progress: denoising steps
     /// and decodes).
     Intrinsics,
+    /// Estimating a photo's surface normals (progress: denoising steps and decodes).
+    Normals,
     /// Path-tracing the passes (progress: rows).
     Render,
     /// The network (progress: its blocks).
@@ -28,6 +30,7 @@ impl Stage {
             Stage::Depth => "depth",
             Stage::Reconstruct => "reconstruct",
             Stage::Intrinsics => "intrinsics",
+            Stage::Normals => "normals",
             Stage::Render => "rendering",
             Stage::Network => "network",
             Stage::Frames => "frames",

@@ -12,7 +12,8 @@
 //! - **Size**: without a stride, the smallest stride giving at most `max_triangles` triangles.
 //! - Material maps must have the photo's size and be finite; the albedo (an sRGB PNG/JPEG or a
 //!   linear EXR) replaces the photo as the colour texture; roughness and metallic are scalar
-//!   textures; a normal map (camera space, in [-1, 1]) bends the shading normals.
+//!   textures; a normal map (camera space, in [-1, 1]; read or estimated in [`crate::normals`])
+//!   gives the mesh's vertex normals, which the renderer shades with.
 use crate::error::{PipelineError, Result};
 use crate::observe::Observer;
 use crate::photo::Photo;
@@ -73,7 +74,8 @@ pub struct Maps {
     pub roughness: Option<Image>,
     /// First channel used.
     pub metallic: Option<Image>,
-    /// Camera-space normals in [-1, 1] (3 channels).
+    /// Camera-space normals in [-1, 1] (3 channels; X right, Y up, Z towards the camera):
+    /// the vertex normals, sampled at each vertex's pixel ([`crate::normals`]).
     pub normals: Option<Image>,
 }
 

@@ -11,8 +11,8 @@
 //!   [`trace::light`] + [`trace::material`] → [`trace::integrator`] → [`trace::film`]), its
 //!   uniform numbers from [`trace::sampler`] (padded Owen-scrambled Sobol by default).
 //! - [`reconstruct`]: scenes made from a photo and lights placed in them: depth map → mesh
-//!   ([`reconstruct::depth`]), the coarse scene of the paper's inference
-//!   ([`reconstruct::coarse_scene`]), lights at a pixel or from a side
+//!   ([`reconstruct::depth`]) with normal-map files ([`reconstruct::normals`]), the coarse scene
+//!   of the paper's inference ([`reconstruct::coarse_scene`]), lights at a pixel or from a side
 //!   ([`reconstruct::placement`]) and the paper's presets ([`reconstruct::presets`]).
 //! - [`io`]: files other tools read and write: mesh files ([`io::export`]) and the Blender
 //!   bridge ([`io::blender`]).
@@ -31,7 +31,7 @@ pub mod trace;
 
 // Every module at the crate root under its own name (`pixl_render::film`, `pixl_render::blender`, …).
 pub use io::{blender, export};
-pub use reconstruct::{depth, placement, presets};
+pub use reconstruct::{depth, normals, placement, presets};
 pub use scene::{color, mesh};
 pub use trace::{bvh, camera, denoise, film, geometry, integrator, light, material, sampler, sampling, texture};
 

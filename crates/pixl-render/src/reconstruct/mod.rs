@@ -1,6 +1,7 @@
 //! Scenes made from a photo, and lights placed in them (paper §3.4, §4.2):
 //! - [`depth`]: a depth map + pinhole intrinsics → a textured triangle grid (the mesh of
 //!   `pixl reconstruct`);
+//! - [`normals`]: camera-space normal maps as files (the mesh's shading normals);
 //! - this module: [`coarse_scene`] and [`coarse_scene_textured`], the coarse scene of a source
 //!   render (below);
 //! - [`placement`]: lights placed as a person describes them (at a pixel of the photo, from a
@@ -32,6 +33,7 @@ use crate::trace::film::Film;
 use std::path::Path;
 
 pub mod depth;
+pub mod normals;
 pub mod placement;
 pub mod presets;
 
