@@ -12,6 +12,7 @@ mod ctx;
 mod device;
 mod estimators;
 mod iid;
+mod normals;
 mod weights;
 
 pub use ctx::Ctx;
@@ -88,7 +89,7 @@ Lookup: --models DIR (or PIXL_MODELS_DIR), then the Hugging Face cache (HF_HUB_C
     )]
     Models(cmd::models::Command),
     /// Estimate maps from a photo with pretrained estimators (depth: Depth Anything 3; materials and
-    /// lighting: Marigold-IID).
+    /// lighting: Marigold-IID; normals: Marigold Normals).
     #[command(
         subcommand,
         after_help = "Example:\n  pixl estimate depth photo.jpg -o depth.exr --preview depth.png"

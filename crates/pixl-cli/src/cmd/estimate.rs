@@ -4,6 +4,9 @@
 //! Marigold-IID Appearance (§3.4 materials), the textures `pixl reconstruct` takes.
 //! `pixl estimate lighting`: a photo → its own C_T (albedo, diffuse shading, non-diffuse
 //! residual) with Marigold-IID Lighting (§3.3 training targets), rescaled like `pixl compose`.
+//! `pixl estimate normals`: a photo → its camera-space surface normals with Marigold Normals
+//! (X right, Y up, Z towards the camera; EXR values in [-1, 1], or a 16-bit PNG of n/2 + 1/2),
+//! the map `pixl reconstruct --normals` takes.
 //!
 //! - **Model**: `da3-metric` (default; depth in metres, scaled by the focal length) or `da3-mono`
 //!   (relative depth, up to scale: reconstruct it with `--depth-kind relative`). Weights: see
@@ -54,6 +57,40 @@ The file has the channels `pixl compose` writes (albedo/shading/residual .R .G .
 p98 rescale of App. B. For a whole dataset use `pixl prepare-targets`."
     )]
     Lighting(LightingArgs),
+    /// Camera-space surface normals of a photo with Marigold Normals.
+    #[command(after_help = "Examples:\n  pixl estimate normals photo.jpg -o normals.exr\n  \
+pixl estimate normals photo.jpg -o normals.png --res 512 --ensemble 5 --uncertainty spread.exr --json\n\n\
+The normals are unit vectors in the camera's frame: X right, Y up, Z towards the camera (a wall facing \
+the camera is 0,0,1). An .exr holds them as they are (R, G, B = X, Y, Z in [-1, 1]); a .png holds \
+n/2 + 1/2 in 16 bits (the usual blue-ish normal-map picture).\n\
+Then: pixl reconstruct --image photo.jpg --normals normals.exr -o scene/ (or just --normals marigold).\n\
+Weights: marigold-normals (prs-eth/marigold-normals-v1-1, Apache-2.0), looked up in --models DIR, then \
+the Hugging Face cache, then downloaded once (about 2.6 GB; --offline never downloads).\n\
+On a CPU one photo takes minutes at 768 px (the time is shown before it starts).")]
+    Normals(NormalsArgs),
+}
+
+#[derive(clap::Args, Debug)]
+pub struct NormalsArgs {
+    /// The photo (PNG/JPEG/EXR).
+    pub photo: PathBuf,
+    /// Output normal map: .exr (values in [-1, 1]) or .png (16-bit, n/2 + 1/2).
+    #[arg(short = 'o', long = "out")]
+    pub out: PathBuf,
+    /// Also write the ensemble's uncertainty (.exr or .png, one channel in [0, 1]: the members'
+    /// mean angle to their mean normal, over pi); needs --ensemble 2 or more.
+    #[arg(long, value_name = "FILE")]
+    pub uncertainty: Option<PathBuf>,
+    #[command(flatten)]
+    pub normals: crate::normals::MarigoldNormalsArgs,
+    /// Device: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    pub device: String,
+    /// Print a JSON summary.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub weights: WeightsArgs,
 }
 
 #[derive(clap::Args, Debug)]
@@ -137,7 +174,80 @@ pub fn run(command: Command, ctx: &Ctx) -> anyhow::Result<()> {
         Command::Depth(a) => depth(a, ctx),
         Command::Materials(a) => materials(a, ctx),
         Command::Lighting(a) => lighting(a, ctx),
+        Command::Normals(a) => normals(a, ctx),
     }
+}
+
+fn normals(args: NormalsArgs, ctx: &Ctx) -> anyhow::Result<()> {
+    let ctx = &ctx.for_json(args.json);
+    check_output(&args.out, &["exr", "png"], &[&args.photo])?;
+    if let Some(u) = &args.uncertainty {
+        check_output(u, &["exr", "png"], &[&args.photo, &args.out])?;
+        if args.normals.ensemble < 2 {
+            anyhow::bail!(
+                "--uncertainty is the spread of an ensemble: give --ensemble 2 or more (3 or more to be useful)"
+            );
+        }
+    }
+    let photo = read_photo(&args.photo)?;
+    let started = std::time::Instant::now();
+    let (m, resolved) = crate::normals::load(&args.device, &args.weights, ctx)?;
+    let load_seconds = started.elapsed().as_secs_f64();
+    let opts = args.normals.options(args.uncertainty.is_some());
+    crate::normals::announce(&m, photo.width, photo.height, &opts)?;
+    let started = std::time::Instant::now();
+    let pb = ctx.progress(1, "normals");
+    let pred = m.predict(&photo, &opts, &mut |p| {
+        pb.set_length(p.total as u64);
+        pb.set_position(p.done as u64);
+    })?;
+    pb.finish_and_clear();
+    let estimate_seconds = started.elapsed().as_secs_f64();
+    pixl_render::normals::write_normal_map(&args.out, &pred.normals)?;
+    if let (Some(path), Some(u)) = (&args.uncertainty, &pred.uncertainty) {
+        pixl_core::io::write_image(path, u)?;
+    }
+    // How much the normals turn away from the camera: the mean angle to +Z, in degrees.
+    let n = &pred.normals;
+    let tilt = n
+        .data
+        .chunks_exact(3)
+        .map(|p| (p[2].clamp(-1.0, 1.0) as f64).acos().to_degrees())
+        .sum::<f64>()
+        / (n.width * n.height).max(1) as f64;
+    if args.json {
+        return ctx.print_json(&serde_json::json!({
+            "photo": args.photo.display().to_string(),
+            "out": args.out.display().to_string(),
+            "uncertainty": args.uncertainty.as_ref().map(|p| p.display().to_string()),
+            "width": photo.width,
+            "height": photo.height,
+            "processed_size": [pred.processed_size.0, pred.processed_size.1],
+            "steps": pred.steps,
+            "ensemble": pred.ensemble,
+            "seed": args.normals.seed,
+            "mean_tilt_deg": tilt,
+            "load_seconds": load_seconds,
+            "estimate_seconds": estimate_seconds,
+            "weights": weights_json(&resolved),
+        }));
+    }
+    ctx.say(format!(
+        "{}: {}x{} at {}x{}, {} steps x {}: mean tilt from the view axis {tilt:.1} deg -> {}",
+        crate::normals::MODEL,
+        photo.width,
+        photo.height,
+        pred.processed_size.0,
+        pred.processed_size.1,
+        pred.steps,
+        pred.ensemble,
+        args.out.display()
+    ));
+    ctx.say(format!(
+        "weights: {} ({}), from {}",
+        resolved.spec.repo, resolved.spec.licence, resolved.source
+    ));
+    Ok(())
 }
 
 /// The files `pixl estimate materials` writes.

@@ -13,10 +13,14 @@
 //!   another size than the photo is resampled bilinearly to it, with a warning.
 //! - **Size**: without `--stride`, the smallest stride giving at most `--max-triangles`
 //!   triangles is used (and said).
+//! - **Normals** (`--normals`): the mesh's vertex normals from a camera-space normal map, a file
+//!   (`pixl estimate normals` writes one) or `marigold` (Marigold Normals run on the photo);
+//!   `pixl_pipeline::normals`.
 use crate::Ctx;
 use anyhow::{bail, Context};
 use pixl_core::Image;
 use pixl_pipeline::depth::DepthFile;
+use pixl_pipeline::estimators::MarigoldNormalsEstimator;
 use pixl_pipeline::reconstruct::{Maps, MeshSettings, DEFAULT_MAX_TRIANGLES, OUTPUT_FILES};
 use pixl_pipeline::Photo;
 use pixl_render::depth::{self, DepthMap};
@@ -64,8 +68,11 @@ impl From<MeshFormat> for pixl_pipeline::reconstruct::MeshFormat {
 #[command(
     after_help = "Examples:\n  pixl reconstruct --image photo.jpg -o scene/                    # depth from Depth Anything 3 metric\n  \
 pixl reconstruct --image photo.png --depth depth.exr --albedo albedo.png --fov 60 -o scene/\n  \
-pixl reconstruct --image photo.jpg --depth disp.png --depth-kind disparity --depth-range 0.5,8 -o scene/\n\n\
-Without --depth the weights of da3-metric are looked up in --models DIR, then the Hugging Face cache, \
+pixl reconstruct --image photo.jpg --depth disp.png --depth-kind disparity --depth-range 0.5,8 -o scene/\n  \
+pixl reconstruct --image photo.jpg --normals marigold -o scene/      # shading normals from Marigold Normals\n  \
+pixl reconstruct --image photo.jpg --normals normals.exr -o scene/   # ... or from `pixl estimate normals`\n\n\
+Without --depth the weights of da3-metric (with --normals marigold: marigold-normals; with --materials \
+marigold: marigold-appearance) are looked up in --models DIR, then the Hugging Face cache, \
 then downloaded once (see `pixl models`); --offline never downloads."
 )]
 pub struct Args {
@@ -99,9 +106,15 @@ pub struct Args {
     /// Metallic map (first channel used).
     #[arg(long)]
     pub metallic: Option<PathBuf>,
-    /// Camera-space normal map (EXR in [-1, 1], or PNG encoding n/2 + 1/2): X right, Y up, Z to the camera.
-    #[arg(long)]
-    pub normals: Option<PathBuf>,
+    /// The mesh's shading normals: a camera-space normal map file (EXR in [-1, 1], or PNG/JPEG
+    /// storing n/2 + 1/2; X right, Y up, Z towards the camera), as `pixl estimate normals` writes,
+    /// or `marigold` to estimate them from the photo with Marigold Normals (minutes on a CPU; the
+    /// time is shown first). A file named `marigold` is given as ./marigold.
+    #[arg(long, value_name = "FILE|marigold", value_parser = parse_normals)]
+    pub normals: Option<NormalsSource>,
+    /// Longest side Marigold processes with --normals marigold (multiple of 8; default 768).
+    #[arg(long, value_name = "PX")]
+    pub normals_res: Option<usize>,
     /// Vertical field of view in degrees (else --focal, else the photo's EXIF, else 50).
     #[arg(long, conflicts_with = "focal")]
     pub fov: Option<f64>,
@@ -146,6 +159,23 @@ pub struct Args {
     pub device: String,
     #[command(flatten)]
     pub weights: crate::weights::WeightsArgs,
+}
+
+/// Where `--normals` comes from.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum NormalsSource {
+    /// Marigold Normals, run on the photo.
+    Marigold,
+    /// A normal-map file.
+    File(PathBuf),
+}
+
+fn parse_normals(s: &str) -> Result<NormalsSource, String> {
+    match s {
+        "" => Err("give a normal-map file (.exr, .png) or `marigold`".into()),
+        "marigold" => Ok(NormalsSource::Marigold),
+        path => Ok(NormalsSource::File(PathBuf::from(path))),
+    }
 }
 
 /// Where the mesh's material maps come from besides the flags that name files.
@@ -204,23 +234,37 @@ fn depth_of(args: &Args, photo: &Photo, ctx: &Ctx) -> anyhow::Result<DepthMap> {
     Ok(pixl_pipeline::depth::read_depth_file(path, &how, size)?)
 }
 
+/// The photo's normals with Marigold Normals (`--normals marigold`), in the scene's frame.
+fn marigold_normals(args: &Args, photo: &Photo, ctx: &Ctx) -> anyhow::Result<Image> {
+    let (m, resolved) = crate::normals::load(&args.device, &args.weights, ctx)?;
+    let flags = crate::normals::MarigoldNormalsArgs {
+        res: args.normals_res,
+        ..Default::default()
+    };
+    let opts = flags.options(false);
+    let (w, h) = photo.size();
+    crate::normals::announce(&m, w, h, &opts)?;
+    let (steps, res) = m.resolve(&opts)?;
+    let est = MarigoldNormalsEstimator::new(m, opts, crate::normals::MODEL);
+    let normals = pixl_pipeline::normals::estimate_normals(&est, photo, &crate::ctx::Bars::new(ctx))?;
+    ctx.say(format!(
+        "normals from {} ({steps} steps at {res} px; weights: {} from {})",
+        crate::normals::MODEL,
+        resolved.spec.licence,
+        resolved.source
+    ));
+    Ok(normals)
+}
+
 /// The material maps of the flags (`--albedo`, `--roughness`, `--metallic`, `--normals`) or of
 /// Marigold-IID Appearance (`--materials marigold`).
 fn maps_of(args: &Args, photo: &Photo, ctx: &Ctx) -> anyhow::Result<Maps> {
     let size = photo.size();
     let normals = match &args.normals {
-        Some(p) => {
-            let n = read_map("normal", p, size)?;
-            if n.channels < 3 {
-                bail!("{}: a normal map needs 3 channels, found {}", p.display(), n.channels);
-            }
-            // PNG/JPEG store n/2 + 1/2.
-            Some(if pixl_core::io::extension(p) == "exr" {
-                n
-            } else {
-                n.map(|v| 2.0 * v - 1.0)
-            })
+        Some(NormalsSource::File(p)) => {
+            Some(pixl_pipeline::normals::read_normals(p, size).context("reading the normal map")?)
         }
+        Some(NormalsSource::Marigold) => Some(marigold_normals(args, photo, ctx)?),
         None => None,
     };
     if args.materials == Some(MaterialSource::Marigold) {
@@ -276,11 +320,17 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
     let mut inputs: Vec<&Path> = vec![&args.image];
     inputs.extend(args.depth.as_deref());
     inputs.extend(
-        [&args.albedo, &args.roughness, &args.metallic, &args.normals]
+        [&args.albedo, &args.roughness, &args.metallic]
             .into_iter()
             .flatten()
             .map(PathBuf::as_path),
     );
+    if let Some(NormalsSource::File(p)) = &args.normals {
+        inputs.push(p);
+    }
+    if args.normals_res.is_some() && args.normals != Some(NormalsSource::Marigold) {
+        bail!("--normals-res sets Marigold's resolution: it needs --normals marigold");
+    }
     pixl_core::output::check_output_dir(&args.out, args.force, OUTPUT_FILES, &inputs)?;
     if args.max_triangles < 2 {
         bail!("--max-triangles {}: must be at least 2", args.max_triangles);
@@ -355,6 +405,11 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
                 Some(MaterialSource::Marigold) => "marigold-appearance",
                 None if args.albedo.is_some() => "maps",
                 None => "photo",
+            },
+            "normals": match &args.normals {
+                Some(NormalsSource::Marigold) => Some(crate::normals::MODEL),
+                Some(NormalsSource::File(_)) => Some("file"),
+                None => None,
             },
             "seconds": started.elapsed().as_secs_f64(),
         }))?;
