@@ -1,11 +1,13 @@
 #!/usr/bin/env python3
-"""One photo through diffusers' MarigoldIntrinsicsPipeline, on the CPU in f32: the yardstick for
-`pixl estimate materials|lighting` in scripts/bench-marigold.sh.
+"""One photo through diffusers' MarigoldIntrinsicsPipeline or MarigoldNormalsPipeline (the class named by
+the checkpoint's model_index.json), on the CPU in f32: the yardstick for
+`pixl estimate materials|lighting|normals` in scripts/bench-marigold.sh.
 
     usage: marigold_diffusers.py CHECKPOINT_DIR PHOTO [--res 512] [--steps 1] [--ensemble 1] [--threads 2]
 
 CHECKPOINT_DIR is a diffusers pipeline folder with `*.fp16.safetensors` weights (as written by
-marigold_random_checkpoint.py, or a downloaded prs-eth/marigold-iid-*-v1-1); they are loaded with
+marigold_random_checkpoint.py, or a downloaded prs-eth/marigold-iid-*-v1-1 or prs-eth/marigold-normals-v1-1); they
+are loaded with
 variant="fp16" and torch_dtype=float32, i.e. upcast to f32 as pixl does. Prints the load time, the
 time of the pipeline call alone (preprocessing, VAE encode, denoising, VAE decode, resize back to the
 photo's size) and the process's peak RSS. Not run by CI; nothing is downloaded.
@@ -14,6 +16,7 @@ photo's size) and the process's peak RSS. Not run by CI; nothing is downloaded.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
 import time
@@ -24,7 +27,9 @@ T_START = time.perf_counter()
 import torch  # noqa: E402
 from PIL import Image  # noqa: E402
 
-from diffusers import MarigoldIntrinsicsPipeline  # noqa: E402
+from diffusers import MarigoldIntrinsicsPipeline, MarigoldNormalsPipeline  # noqa: E402
+
+PIPELINES = {c.__name__: c for c in (MarigoldIntrinsicsPipeline, MarigoldNormalsPipeline)}
 
 
 def main() -> None:
@@ -40,8 +45,12 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     t_import = time.perf_counter() - T_START
 
+    with open(os.path.join(args.checkpoint, "model_index.json")) as f:
+        class_name = json.load(f)["_class_name"]
+    if class_name not in PIPELINES:
+        raise SystemExit(f"{args.checkpoint}: {class_name} is not one of {sorted(PIPELINES)}")
     t0 = time.perf_counter()
-    pipe = MarigoldIntrinsicsPipeline.from_pretrained(args.checkpoint, variant="fp16", torch_dtype=torch.float32)
+    pipe = PIPELINES[class_name].from_pretrained(args.checkpoint, variant="fp16", torch_dtype=torch.float32)
     pipe.set_progress_bar_config(disable=True)
     dtypes = {p.dtype for m in (pipe.unet, pipe.vae, pipe.text_encoder) for p in m.parameters()}
     assert dtypes == {torch.float32}, dtypes
@@ -58,7 +67,8 @@ def main() -> None:
     pred = out.prediction
     finite = bool(torch.isfinite(torch.as_tensor(pred)).all())
     rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
-    print(f"diffusers marigold {pipe.n_targets} targets, {image.size[0]}x{image.size[1]} at res {args.res}, "
+    what = f"{pipe.n_targets} targets" if hasattr(pipe, "n_targets") else "normals"
+    print(f"diffusers marigold {what}, {image.size[0]}x{image.size[1]} at res {args.res}, "
           f"{args.steps} steps x {args.ensemble}, {args.threads} threads: import {t_import:.1f} s, "
           f"load {t_load:.1f} s, call {t_call:.2f} s, peak RSS {rss_gb:.2f} GB, "
           f"prediction {tuple(pred.shape)} finite {finite}", flush=True)

@@ -1,17 +1,19 @@
 #!/usr/bin/env python3
-"""A randomly initialised Marigold-IID checkpoint at the REAL model sizes, for CPU benchmarks.
+"""A randomly initialised Marigold checkpoint (IID or normals) at the REAL model sizes, for CPU benchmarks.
 
-    usage: marigold_random_checkpoint.py {appearance,lighting} OUT_DIR [--seed N]
+    usage: marigold_random_checkpoint.py {appearance,lighting,normals} OUT_DIR [--seed N]
 
-Writes OUT_DIR in the diffusers layout that `pixl` and diffusers' `MarigoldIntrinsicsPipeline` both
-read (model_index.json, scheduler/, unet/, vae/, text_encoder/, tokenizer/), with the weights as the
-`.fp16` variant only (`*.fp16.safetensors`, what pixl's registry downloads; both loaders upcast them
+Writes OUT_DIR in the diffusers layout that `pixl` and diffusers' `MarigoldIntrinsicsPipeline` (or
+`MarigoldNormalsPipeline`) both read (model_index.json, scheduler/, unet/, vae/, text_encoder/,
+tokenizer/), with the weights as the `.fp16` variant only (`*.fp16.safetensors`, what pixl's registry downloads; both loaders upcast them
 to f32). About 2.6 GB per folder. The outputs are meaningless: this is for timing and memory only.
 
-Architectures (Stable Diffusion 2, as the released prs-eth/marigold-iid-*-v1-1 checkpoints):
+Architectures (Stable Diffusion 2, as the released prs-eth/marigold-iid-*-v1-1 and prs-eth/marigold-normals-v1-1
+checkpoints):
   - UNet2DConditionModel: block_out_channels (320, 640, 1280, 1280), attention_head_dim (5, 10, 20, 20),
     cross_attention_dim 1024, use_linear_projection, layers_per_block 2, 32 groups, sample_size 96;
-    in/out channels 12/8 (appearance: 2 targets) or 16/12 (lighting: 3 targets). ~0.87 B parameters.
+    in/out channels 12/8 (appearance: 2 targets), 16/12 (lighting: 3 targets) or 8/4 (normals: 1 target).
+    ~0.87 B parameters.
   - AutoencoderKL: block_out_channels (128, 256, 512, 512), layers_per_block 2, 4 latent channels,
     scaling_factor 0.18215. ~84 M parameters.
   - CLIPTextModel: hidden 1024, 23 layers, 16 heads, intermediate 4096, gelu, vocab 49408, 77 positions.
@@ -21,7 +23,7 @@ Weights: the libraries' own default initialisation (PyTorch's for the diffusers 
 encoder forward are run on the fp16-rounded weights and must be finite.
 
 model_index.json, the scheduler config and the tokenizer are those of the test fixtures
-(fixtures/marigold/{appearance,lighting}/): the tokenizer's vocabulary is tiny but holds
+(fixtures/marigold/{appearance,lighting,normals}/): the tokenizer's vocabulary is tiny but holds
 <|startoftext|> and <|endoftext|>, the only tokens of Marigold's empty prompt; the text encoder's
 config uses their ids as bos/eos.
 
@@ -48,7 +50,7 @@ from diffusers import AutoencoderKL, UNet2DConditionModel  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 FIXTURES = ROOT / "fixtures" / "marigold"
-N_TARGETS = {"appearance": 2, "lighting": 3}
+N_TARGETS = {"appearance": 2, "lighting": 3, "normals": 1}
 
 UNET = dict(
     sample_size=96,
