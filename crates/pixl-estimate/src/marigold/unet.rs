@@ -620,11 +620,15 @@ impl Dense {
     }
 }
 
-/// Score floats per block of query rows: 512 Ki floats (2 MiB). Each block repacks all of a
-/// head's keys and values for its two GEMMs, so larger blocks pay for that less often: on the
-/// SD2 UNet at a 64×64 latent (2 threads) the attention took 3.2 s with 128 Ki, 2.2 s with
-/// 512 Ki and 1 Mi, 6.2 s with 32 Ki.
+/// Score floats per block of query rows: 512 Ki floats (2 MiB), but never fewer than
+/// [`MIN_BLOCK_ROWS`] rows. Each block repacks all of a head's keys and values for its two GEMMs,
+/// so larger blocks pay for that less often, even once the scores leave L2: on the SD2 UNet
+/// (2 threads) the attention took, at a 64×64 latent, 3.2 s with blocks of 128 Ki floats, 2.2 s
+/// with 512 Ki or 1 Mi, 6.2 s with 32 Ki; at 96×96 (9216 keys), 8.9 s with 56 rows per block,
+/// 7.6 s with 128, 7.1 s with 256, 7.3 s with 512.
 const BLOCK_SCORES: usize = 512 * 1024;
+/// Fewest query rows per block (see [`BLOCK_SCORES`]).
+const MIN_BLOCK_ROWS: usize = 256;
 
 thread_local! {
     /// Per-thread scratch: one block's scores and its rows' inverse sums.
@@ -666,7 +670,7 @@ fn multi_head_attention(q: &Tensor, k: &Tensor, v: &Tensor, heads: usize) -> Res
         bail!("attention over no keys");
     }
     let scale = 1.0 / (d as f32).sqrt();
-    let rows_per_block = (BLOCK_SCORES / m).clamp(8, 1024);
+    let rows_per_block = (BLOCK_SCORES / m).clamp(MIN_BLOCK_ROWS, 1024);
     let blocks = n.div_ceil(rows_per_block);
     let dst = OutPtr(out.as_mut_ptr());
     with_values(q, |qv| {
@@ -1397,11 +1401,11 @@ mod tests {
     }
 
     /// The strided attention kernel against pixl-nn's (heads split by reshapes): one block of
-    /// query rows, and four (1200 keys: 436 rows per block).
+    /// query rows, and six (1200 keys: 436 rows per block, the last one short).
     #[test]
     fn attention_reads_heads_in_place() {
         let dev = Device::Cpu;
-        for (n, m) in [(37, 5), (1500, 1200)] {
+        for (n, m) in [(37, 5), (2500, 1200)] {
             let q = Tensor::randn(0f32, 1.0, (2, n, 12), &dev).unwrap();
             let k = Tensor::randn(0f32, 1.0, (2, m, 12), &dev).unwrap();
             let v = Tensor::randn(0f32, 1.0, (2, m, 12), &dev).unwrap();
