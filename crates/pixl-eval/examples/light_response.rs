@@ -14,7 +14,7 @@ use std::process::ExitCode;
 
 fn main() -> ExitCode {
     let files: Vec<PathBuf> = std::env::args_os().skip(1).map(PathBuf::from).collect();
-    if files.len() < 4 || files.len() % 2 != 0 {
+    if files.len() < 4 || !files.len().is_multiple_of(2) {
         eprintln!("usage: light_response RELIT_1 RENDER_1 RELIT_2 RENDER_2 [...] (two lightings or more)");
         return ExitCode::from(2);
     }
