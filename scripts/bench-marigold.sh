@@ -16,11 +16,12 @@
 #                scripts/bench/marigold_random_checkpoint.py when missing)
 #     --bin      the pixl binary (default target/release/pixl, else target/debug/pixl; the dev profile
 #                builds the dependencies - candle, gemm - at opt-level 3, where the time goes)
-#     --quick    only 512 px, 1 step per model, and the diffusers comparisons
+#     --quick    only the --res px, --steps rows per model, and the diffusers comparisons
 #     --only     comma-separated subset of appearance,lighting,normals (default: all three); the
 #                side by side runs for appearance and normals when they are in it
 #     --res      the processing resolution of the --quick rows and the side by side (default 512;
 #                a multiple of 8 - a small one, e.g. 64, is a quick check that the script works)
+#     --steps    denoising steps of the --quick rows and the side by side (default 1)
 # env: PYTHON  a Python with torch 2.15, diffusers 0.42.1, transformers 5.24 (default /work/venv-ref/bin/python;
 #              see scripts/fixtures/marigold.py for the versions)
 #
@@ -42,6 +43,7 @@ BIN=""
 QUICK=""
 ONLY=appearance,lighting,normals
 RES=512
+STEPS=1
 while [ $# -gt 0 ]; do
   case "$1" in
     --threads) THREADS=$2; shift 2 ;;
@@ -49,6 +51,7 @@ while [ $# -gt 0 ]; do
     --weights) WEIGHTS=$2; shift 2 ;;
     --bin) BIN=$2; shift 2 ;;
     --quick) QUICK=1; shift ;;
+    --steps) STEPS=$2; shift 2 ;;
     --only) ONLY=$2; shift 2 ;;
     --res) RES=$2; shift 2 ;;
     *) echo "unknown argument $1" >&2; exit 2 ;;
@@ -65,6 +68,7 @@ done
 want() { [[ " ${KINDS[*]} " == *" $1 "* ]]; }
 [[ "$RES" =~ ^[0-9]+$ ]] && [ "$RES" -gt 0 ] && [ $((RES % 8)) -eq 0 ] || {
   echo "--res $RES: must be a positive multiple of 8" >&2; exit 2; }
+[[ "$STEPS" =~ ^[0-9]+$ ]] && [ "$STEPS" -gt 0 ] || { echo "--steps $STEPS: must be a positive integer" >&2; exit 2; }
 PYTHON=${PYTHON:-/work/venv-ref/bin/python}
 if [ -z "$BIN" ]; then
   BIN=target/release/pixl
@@ -139,8 +143,8 @@ echo "| command | wall s | peak RSS GB |"
 echo "|---|---|---|"
 for kind in "${KINDS[@]}"; do
   sub=${SUBCOMMAND[$kind]}
-  pixl_cmd "$kind" "$RES" 1
-  run "pixl estimate $sub --res $RES --steps 1" "${PIXL[@]}"
+  pixl_cmd "$kind" "$RES" "$STEPS"
+  run "pixl estimate $sub --res $RES --steps $STEPS" "${PIXL[@]}"
   if [ -z "$QUICK" ]; then
     for rs in "512 4" "768 1" "768 4"; do
       set -- $rs
@@ -152,13 +156,13 @@ done
 
 # side_by_side KIND CLASS: pixl and diffusers on the same photo, resolution and threads (A B A B).
 side_by_side() {
-  echo "== side by side, $1 $RES px, 1 step, ensemble 1 (A B A B)"
+  echo "== side by side, $1 $RES px, $STEPS step(s), ensemble 1 (A B A B)"
   for _ in 1 2; do
-    pixl_cmd "$1" "$RES" 1
-    run "pixl estimate ${SUBCOMMAND[$1]} --res $RES --steps 1" "${PIXL[@]}"
+    pixl_cmd "$1" "$RES" "$STEPS"
+    run "pixl estimate ${SUBCOMMAND[$1]} --res $RES --steps $STEPS" "${PIXL[@]}"
     run "diffusers $2 (whole process)" \
       env OMP_NUM_THREADS="$THREADS" "$PYTHON" scripts/bench/marigold_diffusers.py \
-      "$WEIGHTS/marigold-$1" "$PHOTO" --res "$RES" --steps 1 --ensemble 1 --threads "$THREADS"
+      "$WEIGHTS/marigold-$1" "$PHOTO" --res "$RES" --steps "$STEPS" --ensemble 1 --threads "$THREADS"
   done
 }
 if want appearance; then side_by_side appearance MarigoldIntrinsicsPipeline; fi

@@ -123,21 +123,27 @@ pub fn write_uncertainty(pred: &IidPrediction, prefix: &str) -> anyhow::Result<(
 /// throughput, BENCHMARKS.md); refuses options the checkpoint cannot run.
 pub fn announce(m: &Marigold, width: usize, height: usize, opts: &MarigoldOptions, label: &str) -> anyhow::Result<()> {
     let (steps, res) = m.resolve(opts)?;
+    log_expected_time(label, res, steps, opts.ensemble, m.approx_tflop(width, height, opts));
+    Ok(())
+}
+
+/// Logs the expected time of a Marigold run of `tflop` TFLOP (`None`: nothing to say) on this
+/// process's CPU threads (`RAYON_NUM_THREADS`, else all cores). Shared by every Marigold model:
+/// they run the same UNet.
+pub fn log_expected_time(label: &str, res: usize, steps: usize, members: usize, tflop: Option<f64>) {
     let threads = std::env::var("RAYON_NUM_THREADS")
         .ok()
         .and_then(|v| v.parse::<usize>().ok())
         .filter(|n| *n > 0)
         .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    if let Some(tflop) = m.approx_tflop(width, height, opts) {
+    if let Some(tflop) = tflop {
         // Measured (BENCHMARKS.md): about 0.015 TFLOP/s per thread on AVX-512 cores.
         let secs = tflop / (0.015 * threads.max(1) as f64);
         tracing::info!(
-            "{label}: {res} px, {steps} steps × {} member(s): about {} on {threads} CPU threads (≈{tflop:.0} TFLOP)",
-            opts.ensemble,
+            "{label}: {res} px, {steps} steps × {members} member(s): about {} on {threads} CPU threads (≈{tflop:.0} TFLOP)",
             human_duration(secs)
         );
     }
-    Ok(())
 }
 
 fn human_duration(secs: f64) -> String {

@@ -80,28 +80,16 @@ pub fn load(device: &str, weights: &WeightsArgs, ctx: &Ctx) -> anyhow::Result<(M
     Ok((m, resolved))
 }
 
-/// Logs how long estimating a `width × height` photo's normals with `opts` will take (the
-/// throughput measured for Marigold-IID, BENCHMARKS.md); refuses options the checkpoint cannot
-/// run.
+/// Logs how long estimating a `width × height` photo's normals with `opts` will take
+/// ([`crate::iid::log_expected_time`]); refuses options the checkpoint cannot run.
 pub fn announce(m: &MarigoldNormals, width: usize, height: usize, opts: &NormalsOptions) -> anyhow::Result<()> {
     let (steps, res) = m.resolve(opts)?;
-    let threads = std::env::var("RAYON_NUM_THREADS")
-        .ok()
-        .and_then(|v| v.parse::<usize>().ok())
-        .filter(|n| *n > 0)
-        .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
-    if let Some(tflop) = m.approx_tflop(width, height, opts) {
-        // About 0.015 TFLOP/s per thread on AVX-512 cores (crate::iid::announce).
-        let secs = tflop / (0.015 * threads.max(1) as f64);
-        let when = if secs < 90.0 {
-            format!("{secs:.0} s")
-        } else {
-            format!("{:.0} min", secs / 60.0)
-        };
-        tracing::info!(
-            "normals: {res} px, {steps} steps × {} member(s): about {when} on {threads} CPU threads (≈{tflop:.0} TFLOP)",
-            opts.ensemble
-        );
-    }
+    crate::iid::log_expected_time(
+        "normals",
+        res,
+        steps,
+        opts.ensemble,
+        m.approx_tflop(width, height, opts),
+    );
     Ok(())
 }

@@ -22,12 +22,15 @@
 //! on these shapes): at a 96×96 latent one is 1.7 GB, and its forward needs more than 20 GB
 //! (on a 23 GB machine it was refused memory), so it runs only at latent sides up to
 //! `--reference-max` (64). Ours peaks at about 4 GB there, 3.5 GB of it the weights.
+#[path = "../tests/marigold_common/reference_unet.rs"]
+mod reference_unet;
+
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use candle_transformers::models::stable_diffusion::unet_2d as reference;
-use pixl_estimate::marigold::config::DownBlockType;
 use pixl_estimate::marigold::unet::UNet2DConditionModel;
 use pixl_estimate::marigold::UnetConfig;
+use reference_unet::reference_config;
 use std::collections::HashMap;
 use std::time::Instant;
 
@@ -81,32 +84,6 @@ fn parse_args() -> Result<Args, String> {
         return Err("--iters must be at least 1".into());
     }
     Ok(a)
-}
-
-/// The same network in candle-transformers' terms.
-fn reference_config(cfg: &UnetConfig) -> reference::UNet2DConditionModelConfig {
-    let blocks = (0..cfg.block_out_channels.len())
-        .map(|i| reference::BlockConfig {
-            out_channels: cfg.block_out_channels[i],
-            use_cross_attn: (cfg.down_block_types[i] == DownBlockType::CrossAttnDownBlock2D)
-                .then_some(cfg.transformer_layers_per_block[i]),
-            attention_head_dim: cfg.attention_head_dim[i],
-        })
-        .collect();
-    reference::UNet2DConditionModelConfig {
-        center_input_sample: cfg.center_input_sample,
-        flip_sin_to_cos: cfg.flip_sin_to_cos,
-        freq_shift: cfg.freq_shift,
-        blocks,
-        layers_per_block: cfg.layers_per_block[0],
-        downsample_padding: cfg.downsample_padding,
-        mid_block_scale_factor: cfg.mid_block_scale_factor,
-        norm_num_groups: cfg.norm_num_groups,
-        norm_eps: cfg.norm_eps,
-        cross_attention_dim: cfg.cross_attention_dim,
-        sliced_attention_size: None,
-        use_linear_projection: cfg.use_linear_projection,
-    }
 }
 
 fn peak_rss_mib() -> Option<f64> {

@@ -7,7 +7,10 @@
 //! keeps one member per pixel: where diffusers' two best are closer than our rounding can tell
 //! apart, the output pixels resampled from there are left out of the final comparison
 //! ([`closest_picks`]).
-use candle_core::{DType, Device, Tensor};
+mod marigold_common;
+
+use candle_core::{Device, Tensor};
+use marigold_common::{copy_dir, f32s, fixtures, load, max_abs, photo};
 use pixl_core::Image;
 use pixl_estimate::marigold::normals::{
     ensemble, normals_to_size, uncertainty_to_size, MarigoldNormals, NormalsOptions, NormalsReduction,
@@ -22,29 +25,8 @@ const STEPS: usize = 4;
 /// Latents, decoded members and final normals against diffusers (observed: below 1e-5).
 const TOL: f64 = 1e-4;
 
-fn fixtures() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/marigold")
-}
-
 fn case() -> HashMap<String, Tensor> {
-    let p = fixtures().join("normals_case.safetensors");
-    candle_core::safetensors::load(&p, &Device::Cpu).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
-}
-
-fn f32s(t: &Tensor) -> Vec<f32> {
-    t.to_dtype(DType::F32)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
-        .unwrap()
-}
-
-fn max_abs(a: &[f32], b: &[f32]) -> f64 {
-    assert_eq!(a.len(), b.len(), "lengths differ");
-    a.iter()
-        .zip(b)
-        .fold(0f64, |m, (&x, &y)| m.max((x as f64 - y as f64).abs()))
+    load("normals_case.safetensors")
 }
 
 /// Asserts `got` within `tol` of `want` and returns the error.
@@ -66,18 +48,6 @@ fn planar(img: &Image) -> Vec<f32> {
 /// A copy of the fixture folder `name` (loading caches the text embedding beside the weights),
 /// with `edit` applied to its `model_index.json`.
 fn fixture_copy(tmp: &Path, name: &str, edit: impl Fn(String) -> String) -> PathBuf {
-    fn copy_dir(src: &Path, dst: &Path) {
-        std::fs::create_dir_all(dst).unwrap();
-        for e in std::fs::read_dir(src).unwrap() {
-            let e = e.unwrap();
-            let to = dst.join(e.file_name());
-            if e.path().is_dir() {
-                copy_dir(&e.path(), &to);
-            } else {
-                std::fs::copy(e.path(), &to).unwrap();
-            }
-        }
-    }
     let dir = tmp.join(name);
     copy_dir(&fixtures().join(name), &dir);
     let idx = dir.join("model_index.json");
@@ -88,13 +58,6 @@ fn fixture_copy(tmp: &Path, name: &str, edit: impl Fn(String) -> String) -> Path
 /// A copy of the normals fixture with `edit` applied to its `model_index.json`.
 fn checkpoint(tmp: &Path, edit: impl Fn(String) -> String) -> PathBuf {
     fixture_copy(tmp, "normals", edit)
-}
-
-fn photo(case: &HashMap<String, Tensor>) -> Image {
-    let t = &case["image"];
-    let (_, _, h, w) = t.dims4().unwrap();
-    let v = f32s(t);
-    Image::from_fn(w, h, 3, |x, y, c| v[(c * h + y) * w + x])
 }
 
 fn opts(ensemble: usize, reduction: NormalsReduction, uncertainty: bool) -> NormalsOptions {

@@ -9,64 +9,17 @@
 //! Tolerances: both sides compute in f32 with the exact GELU, so what remains is rounding.
 //! Measured (max abs): UNet outputs 6.5e-6 (appearance), 6.8e-6 (lighting), 2.4e-5 (groups8);
 //! latents after a step 6.9e-6, 8.0e-6, 1.2e-5; final maps 2.7e-6, 2.1e-6, 3.5e-6.
+mod marigold_common;
+
 use candle_core::{DType, Device, Tensor};
-use pixl_core::Image;
+use marigold_common::{copy_dir, f32s, fixtures, load, max_abs, photo};
 use pixl_estimate::marigold::{reduce, Ddim, IidVariant, Marigold, MarigoldOptions, Reduction, SchedulerConfig};
-use std::collections::HashMap;
-use std::path::{Path, PathBuf};
-
-fn fixtures() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fixtures/marigold")
-}
-
-fn load(name: &str) -> HashMap<String, Tensor> {
-    let p = fixtures().join(name);
-    candle_core::safetensors::load(&p, &Device::Cpu).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
-}
-
-fn f32s(t: &Tensor) -> Vec<f32> {
-    t.to_dtype(DType::F32)
-        .unwrap()
-        .flatten_all()
-        .unwrap()
-        .to_vec1::<f32>()
-        .unwrap()
-}
-
-fn max_abs(a: &[f32], b: &[f32]) -> f64 {
-    assert_eq!(a.len(), b.len(), "lengths differ");
-    a.iter()
-        .zip(b)
-        .fold(0f64, |m, (&x, &y)| m.max((x as f64 - y as f64).abs()))
-}
 
 fn close(what: &str, got: &Tensor, want: &Tensor, tol: f64) {
     assert_eq!(got.dims(), want.dims(), "{what}: shape");
     let e = max_abs(&f32s(got), &f32s(want));
     eprintln!("{what}: max abs error {e:.2e}");
     assert!(e <= tol, "{what}: max abs error {e:.3e} > {tol:.0e}");
-}
-
-/// A copy of a fixture folder (loading caches the text embedding beside the weights).
-fn copy_dir(src: &Path, dst: &Path) {
-    std::fs::create_dir_all(dst).unwrap();
-    for e in std::fs::read_dir(src).unwrap() {
-        let e = e.unwrap();
-        let to = dst.join(e.file_name());
-        if e.path().is_dir() {
-            copy_dir(&e.path(), &to);
-        } else {
-            std::fs::copy(e.path(), &to).unwrap();
-        }
-    }
-}
-
-/// The fixture's `image` (1, 3, H, W) as an interleaved [`Image`].
-fn photo(case: &HashMap<String, Tensor>) -> Image {
-    let t = &case["image"];
-    let (_, _, h, w) = t.dims4().unwrap();
-    let v = f32s(t);
-    Image::from_fn(w, h, 3, |x, y, c| v[(c * h + y) * w + x])
 }
 
 #[test]

@@ -9,13 +9,17 @@
 //! UNet) use the exact erf form, the one difference between the two networks. Measured on these
 //! shapes (outputs up to 2.3): 4.0e-4 max abs difference; with the tanh form swapped into our
 //! UNet for a check, 4.9e-6. The tolerance, 1e-3, covers the first with a margin.
+#[path = "marigold_common/reference_unet.rs"]
+mod reference_unet;
+
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use candle_transformers::models::stable_diffusion::unet_2d as reference;
 use pixl_core::rng::Rng;
-use pixl_estimate::marigold::config::{DownBlockType, UpBlockType};
+use pixl_estimate::marigold::config::UpBlockType;
 use pixl_estimate::marigold::unet::UNet2DConditionModel;
 use pixl_estimate::marigold::UnetConfig;
+use reference_unet::reference_config;
 use std::collections::HashMap;
 
 /// SD2's structure at a small width: channels (32, 64, 96, 96), 16-channel heads.
@@ -26,32 +30,6 @@ fn small_sd2(use_linear_projection: bool) -> UnetConfig {
         cross_attention_dim: 48,
         use_linear_projection,
         ..UnetConfig::sd2(8, 4)
-    }
-}
-
-/// The same network in candle-transformers' terms.
-fn reference_config(cfg: &UnetConfig) -> reference::UNet2DConditionModelConfig {
-    let blocks = (0..cfg.block_out_channels.len())
-        .map(|i| reference::BlockConfig {
-            out_channels: cfg.block_out_channels[i],
-            use_cross_attn: (cfg.down_block_types[i] == DownBlockType::CrossAttnDownBlock2D)
-                .then_some(cfg.transformer_layers_per_block[i]),
-            attention_head_dim: cfg.attention_head_dim[i],
-        })
-        .collect();
-    reference::UNet2DConditionModelConfig {
-        center_input_sample: cfg.center_input_sample,
-        flip_sin_to_cos: cfg.flip_sin_to_cos,
-        freq_shift: cfg.freq_shift,
-        blocks,
-        layers_per_block: cfg.layers_per_block[0],
-        downsample_padding: cfg.downsample_padding,
-        mid_block_scale_factor: cfg.mid_block_scale_factor,
-        norm_num_groups: cfg.norm_num_groups,
-        norm_eps: cfg.norm_eps,
-        cross_attention_dim: cfg.cross_attention_dim,
-        sliced_attention_size: None,
-        use_linear_projection: cfg.use_linear_projection,
     }
 }
 

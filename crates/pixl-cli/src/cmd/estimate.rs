@@ -243,10 +243,7 @@ fn normals(args: NormalsArgs, ctx: &Ctx) -> anyhow::Result<()> {
         pred.ensemble,
         args.out.display()
     ));
-    ctx.say(format!(
-        "weights: {} ({}), from {}",
-        resolved.spec.repo, resolved.spec.licence, resolved.source
-    ));
+    say_weights(ctx, &resolved);
     Ok(())
 }
 
@@ -303,10 +300,7 @@ fn materials(args: MaterialsArgs, ctx: &Ctx) -> anyhow::Result<()> {
         mean(&mats.metallic),
         args.out.display()
     ));
-    ctx.say(format!(
-        "weights: {} ({}), from {}",
-        resolved.spec.repo, resolved.spec.licence, resolved.source
-    ));
+    say_weights(ctx, &resolved);
     Ok(())
 }
 
@@ -346,11 +340,16 @@ fn lighting(args: LightingArgs, ctx: &Ctx) -> anyhow::Result<()> {
         mean(r),
         args.out.display()
     ));
+    say_weights(ctx, &resolved);
+    Ok(())
+}
+
+/// The line every estimate ends with: which weights, under which licence, from where.
+fn say_weights(ctx: &Ctx, r: &Resolved) {
     ctx.say(format!(
         "weights: {} ({}), from {}",
-        resolved.spec.repo, resolved.spec.licence, resolved.source
+        r.spec.repo, r.spec.licence, r.source
     ));
-    Ok(())
 }
 
 fn weights_json(r: &Resolved) -> serde_json::Value {
@@ -446,11 +445,7 @@ fn depth(args: DepthArgs, ctx: &Ctx) -> anyhow::Result<()> {
             "depth_median": st.map(|s| s.1),
             "depth_max": st.map(|s| s.2),
             "sky_fraction": sky_px as f64 / (w * h) as f64,
-            "weights": {
-                "dir": est.weights.dir.display().to_string(),
-                "source": est.weights.source.to_string(),
-                "licence": est.weights.spec.licence,
-            },
+            "weights": weights_json(&est.weights),
         });
         return ctx.print_json(&v);
     }
@@ -466,10 +461,7 @@ fn depth(args: DepthArgs, ctx: &Ctx) -> anyhow::Result<()> {
         est.focal.source,
         args.out.display()
     ));
-    ctx.say(format!(
-        "weights: {} ({}), from {}",
-        est.weights.spec.repo, est.weights.spec.licence, est.weights.source
-    ));
+    say_weights(ctx, &est.weights);
     if !est.estimate.metric {
         ctx.say("relative depth: reconstruct it with --depth-kind relative --depth-range NEAR,FAR");
     }
