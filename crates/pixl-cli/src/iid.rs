@@ -137,8 +137,9 @@ pub fn log_expected_time(label: &str, res: usize, steps: usize, members: usize, 
         .filter(|n| *n > 0)
         .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
     if let Some(tflop) = tflop {
-        // Measured (BENCHMARKS.md): about 0.015 TFLOP/s per thread on AVX-512 cores.
-        let secs = tflop / (0.015 * threads.max(1) as f64);
+        // Measured (BENCHMARKS.md, 2 threads, Xeon): 0.085 TFLOP/s per thread for materials at
+        // 768 px × 4 steps, 0.09–0.10 at 512 px × 1 step (materials, normals); the lower figure.
+        let secs = tflop / (0.085 * threads.max(1) as f64);
         tracing::info!(
             "{label}: {res} px, {steps} steps × {members} member(s): about {} on {threads} CPU threads (≈{tflop:.0} TFLOP)",
             human_duration(secs)
