@@ -3,8 +3,12 @@
 //!
 //! ```text
 //! RAYON_NUM_THREADS=8 cargo run --release -p pixl-estimate --example bench_da3 -- \
-//!     [--size 504x378] [--size 504x504] [--iters 5] [--warmup 1] [--tiny] [--int8]
+//!     [--size 504x378] [--size 504x504] [--iters 5] [--warmup 1] [--tiny] [--int8] [--profile]
 //! ```
+//! Like `pixl`, the process first calls `pixl_nn::prefer_rayon_pool` and
+//! `pixl_nn::recycle_freed_buffers`.
+//! `--profile` prints where the timed forwards spent their time (`pixl_nn::profile` kinds, per
+//! forward; the rest of the forward is whatever ran outside the instrumented ops).
 //! `--int8` times the backbone's linear layers as 8-bit products (`Da3::quantize_int8`) and prints
 //! how far the depth moves from the f32 forward on the same input (max and RMS relative
 //! difference).
@@ -23,6 +27,7 @@ struct Args {
     warmup: usize,
     tiny: bool,
     int8: bool,
+    profile: bool,
 }
 
 fn parse_args() -> Result<Args, String> {
@@ -32,6 +37,7 @@ fn parse_args() -> Result<Args, String> {
         warmup: 1,
         tiny: false,
         int8: false,
+        profile: false,
     };
     let mut it = std::env::args().skip(1);
     while let Some(flag) = it.next() {
@@ -51,6 +57,7 @@ fn parse_args() -> Result<Args, String> {
             "--warmup" => a.warmup = value()?.parse().map_err(|_| "--warmup: expected a number")?,
             "--tiny" => a.tiny = true,
             "--int8" => a.int8 = true,
+            "--profile" => a.profile = true,
             other => return Err(format!("unknown argument {other}")),
         }
     }
@@ -63,20 +70,45 @@ fn parse_args() -> Result<Args, String> {
     Ok(a)
 }
 
-/// Every tensor of the checkpoint, random: N(0, 0.02²) weights, unit norm scales.
-fn random_weights(cfg: &Da3Config, dev: &Device) -> candle_core::Result<HashMap<String, Tensor>> {
-    expected_tensors(cfg)
-        .into_iter()
-        .map(|(name, shape)| {
-            let t = if name.ends_with("norm1.weight") || name.ends_with("norm2.weight") || name.ends_with("norm.weight")
-            {
-                Tensor::ones(shape, DType::F32, dev)?
-            } else {
-                Tensor::randn(0f32, 0.02, shape, dev)?
-            };
-            Ok((name, t))
-        })
-        .collect()
+/// Every tensor of the checkpoint, random, drawn when the model reads it (so that a layer that
+/// repacks its weights does not leave a second copy alive): N(0, 0.02²) weights, unit norm
+/// scales. Names and shapes are those of the checkpoint (`expected_tensors`).
+struct RandomWeights {
+    shapes: HashMap<String, Vec<usize>>,
+}
+
+impl candle_nn::var_builder::SimpleBackend for RandomWeights {
+    fn get(
+        &self,
+        shape: candle_core::Shape,
+        name: &str,
+        _: candle_nn::Init,
+        dtype: DType,
+        dev: &Device,
+    ) -> candle_core::Result<Tensor> {
+        let t = self.get_unchecked(name, dtype, dev)?;
+        if t.dims() != shape.dims() {
+            candle_core::bail!("{name}: asked for {shape:?}, the checkpoint has {:?}", t.dims());
+        }
+        Ok(t)
+    }
+
+    fn get_unchecked(&self, name: &str, dtype: DType, dev: &Device) -> candle_core::Result<Tensor> {
+        let Some(shape) = self.shapes.get(name) else {
+            candle_core::bail!("{name}: not a tensor of the checkpoint");
+        };
+        let norm = name.ends_with("norm1.weight") || name.ends_with("norm2.weight") || name.ends_with("norm.weight");
+        let t = if norm {
+            Tensor::ones(shape.as_slice(), DType::F32, dev)?
+        } else {
+            Tensor::randn(0f32, 0.02, shape.as_slice(), dev)?
+        };
+        t.to_dtype(dtype)
+    }
+
+    fn contains_tensor(&self, name: &str) -> bool {
+        self.shapes.contains_key(name)
+    }
 }
 
 fn peak_rss_mib() -> Option<f64> {
@@ -87,6 +119,9 @@ fn peak_rss_mib() -> Option<f64> {
 }
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
+    // As `pixl` does: candle's own elementwise pool off, freed buffers recycled.
+    pixl_nn::prefer_rayon_pool();
+    pixl_nn::recycle_freed_buffers();
     let args = parse_args().map_err(|e| format!("bench_da3: {e}"))?;
     let dev = Device::Cpu;
     let cfg = if args.tiny {
@@ -95,7 +130,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Da3Config::large()
     };
     let t0 = Instant::now();
-    let vb = candle_nn::VarBuilder::from_tensors(random_weights(&cfg, &dev)?, DType::F32, &dev);
+    let shapes = expected_tensors(&cfg).into_iter().collect();
+    let vb = candle_nn::VarBuilder::from_backend(Box::new(RandomWeights { shapes }), DType::F32, dev.clone());
     let mut model = Da3::from_var_builder(cfg, vb, &dev)?;
     // The f32 depth of each size's input, for the 8-bit comparison.
     let mut f32_depth = Vec::new();
@@ -132,12 +168,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         for _ in 0..args.warmup {
             model.forward(&xs)?;
         }
-        let mut times: Vec<f64> = (0..args.iters)
+        pixl_nn::profile::take();
+        pixl_nn::profile::enable(args.profile);
+        let times: Result<Vec<f64>, _> = (0..args.iters)
             .map(|_| {
                 let t = Instant::now();
                 model.forward(&xs).map(|_| t.elapsed().as_secs_f64() * 1e3)
             })
-            .collect::<Result<_, _>>()?;
+            .collect();
+        pixl_nn::profile::enable(false);
+        let mut times = times?;
         times.sort_by(|a, b| a.total_cmp(b));
         println!(
             "candle da3 forward {w}x{h}: median {:.0} ms (min {:.0}, max {:.0}, {} runs, {threads} threads)",
@@ -146,6 +186,18 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             times[times.len() - 1],
             times.len()
         );
+        if args.profile {
+            let mut kinds = pixl_nn::profile::take();
+            kinds.sort_by(|a, b| b.1.total_cmp(&a.1));
+            let total: f64 = times.iter().sum::<f64>() / times.len() as f64;
+            let mut inside = 0.0;
+            for (kind, secs, calls) in kinds {
+                let ms = secs * 1e3 / args.iters as f64;
+                inside += ms;
+                println!("  {kind:<30} {ms:>7.0} ms per forward ({} calls)", calls / args.iters);
+            }
+            println!("  {:<30} {:>7.0} ms per forward", "(outside the kinds)", total - inside);
+        }
     }
     if let Some(p) = peak_rss_mib() {
         println!("candle peak RSS {p:.0} MiB");

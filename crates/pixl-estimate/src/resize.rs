@@ -302,6 +302,7 @@ pub fn bilinear_half_pixel(xs: &Tensor, h: usize, w: usize) -> Result<Tensor> {
 /// Parallel f32 kernel on the CPU (weights in f32 as PyTorch's `opmath`); elsewhere candle's
 /// `upsample_bilinear2d`, which implements the same formulas.
 fn bilinear(xs: &Tensor, h: usize, w: usize, align_corners: bool) -> Result<Tensor> {
+    let _t = pixl_nn::profile::span("bilinear resize");
     let (_, _, ih, iw) = xs.dims4()?;
     if ih == h && iw == w {
         return Ok(xs.clone());

@@ -12,6 +12,10 @@
 //!   ([`crate::fastmath`]), `O = S · v` by a second GEMM, then each row divided by its sum.
 //!   Heads × blocks run in parallel on rayon's pool. Differs from the candle path only by
 //!   rounding (tested against an f64 computation).
+//! - [`attention_qkv_rows`]: on fused qkv rows `(B, N, 3·H·D)`, reading the heads in place and
+//!   writing `(B, N, H·D)` directly (no head split or merge copies); with AVX-512 its products
+//!   run on [`crate::packed`]'s tile kernel (keys and values packed once per head, queries
+//!   scaled by `1/√D` as they are packed), elsewhere the same blocks as above.
 use crate::fused::slice;
 use candle_core::{CpuStorage, CustomOp3, DType, Device, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -128,60 +132,315 @@ fn block(
     inv: &mut [f32],
     out: &mut [f32],
 ) {
-    debug_assert!(q.len() == rows * d && k.len() == m * d && v.len() == m * dv);
-    debug_assert!(scores.len() == rows * m && inv.len() == rows && out.len() == rows * dv);
-    // SAFETY: all strides describe row-major matrices lying inside the slices checked above:
-    // S (rows×m, row stride m) = scale · Q (rows×d, row stride d) · Kᵀ, where Kᵀ(i, j) = K[j·d + i]
-    // (column stride d, row stride 1).
-    unsafe {
-        gemm::gemm(
-            rows,
-            m,
-            d,
-            scores.as_mut_ptr(),
-            1,
-            m as isize,
-            false,
-            q.as_ptr(),
-            1,
-            d as isize,
-            k.as_ptr(),
-            d as isize,
-            1,
-            0.0f32,
-            scale,
-            false,
-            false,
-            false,
-            gemm::Parallelism::None,
-        );
-    }
+    assert!(q.len() == rows * d && k.len() == m * d && v.len() == m * dv);
+    assert!(scores.len() == rows * m && inv.len() == rows && out.len() == rows * dv);
+    let views = Views {
+        q: q.as_ptr(),
+        k: k.as_ptr(),
+        v: v.as_ptr(),
+        out: out.as_mut_ptr(),
+        ldq: d,
+        ldk: d,
+        ldv: dv,
+        ldo: dv,
+    };
+    // SAFETY: the slices checked above hold the row-major matrices the views describe.
+    unsafe { block_raw(&views, (rows, m, d, dv), scale, scores, inv) }
+}
+
+/// Row-major matrices by first element and row stride: the block's queries `(rows, d)`, the
+/// head's keys `(m, d)` and values `(m, dv)`, and the block's output `(rows, dv)`.
+struct Views {
+    q: *const f32,
+    k: *const f32,
+    v: *const f32,
+    out: *mut f32,
+    ldq: usize,
+    ldk: usize,
+    ldv: usize,
+    ldo: usize,
+}
+
+/// [`block`] on strided views: `S = scale·Q·Kᵀ`, the row softmax numerators and sums, then
+/// `O = S·V` with each row divided by its sum.
+///
+/// # Safety
+/// The views describe matrices inside live allocations, the output's not read or written by
+/// anyone else meanwhile; `scores` holds `rows·m` values and `inv` `rows`.
+unsafe fn block_raw(
+    x: &Views,
+    (rows, m, d, dv): (usize, usize, usize, usize),
+    scale: f32,
+    scores: &mut [f32],
+    inv: &mut [f32],
+) {
+    debug_assert!(scores.len() == rows * m && inv.len() == rows);
+    // S (rows×m, row stride m) = scale · Q (rows×d, row stride ldq) · Kᵀ, where
+    // Kᵀ(i, j) = K[j·ldk + i] (column stride ldk, row stride 1).
+    gemm::gemm(
+        rows,
+        m,
+        d,
+        scores.as_mut_ptr(),
+        1,
+        m as isize,
+        false,
+        x.q,
+        1,
+        x.ldq as isize,
+        x.k,
+        x.ldk as isize,
+        1,
+        0.0f32,
+        scale,
+        false,
+        false,
+        false,
+        gemm::Parallelism::None,
+    );
     crate::fastmath::softmax_rows_unnormalised(scores, m, inv);
-    // SAFETY: O (rows×dv, row stride dv) = S (rows×m, row stride m) · V (m×dv, row stride dv).
-    unsafe {
-        gemm::gemm(
-            rows,
-            dv,
-            m,
-            out.as_mut_ptr(),
-            1,
-            dv as isize,
-            false,
-            scores.as_ptr(),
-            1,
-            m as isize,
-            v.as_ptr(),
-            1,
-            dv as isize,
-            0.0f32,
-            1.0f32,
-            false,
-            false,
-            false,
-            gemm::Parallelism::None,
-        );
+    // O (rows×dv, row stride ldo) = S (rows×m, row stride m) · V (m×dv, row stride ldv).
+    gemm::gemm(
+        rows,
+        dv,
+        m,
+        x.out,
+        1,
+        x.ldo as isize,
+        false,
+        scores.as_ptr(),
+        1,
+        m as isize,
+        x.v,
+        1,
+        x.ldv as isize,
+        0.0f32,
+        1.0f32,
+        false,
+        false,
+        false,
+        gemm::Parallelism::None,
+    );
+    for (r, &s) in inv.iter().enumerate().take(rows) {
+        let row = std::slice::from_raw_parts_mut(x.out.add(r * x.ldo), dv);
+        row.iter_mut().for_each(|v| *v *= s);
     }
-    for (row, &s) in out.chunks_exact_mut(dv).zip(inv.iter()) {
-        row.iter_mut().for_each(|x| *x *= s);
+}
+
+/// The output pointer shared by [`attention_qkv_rows`]' tasks (disjoint blocks of columns and
+/// rows).
+#[derive(Clone, Copy)]
+struct SharedOut(*mut f32);
+// SAFETY: every task writes its own head's columns of its own rows of one live allocation.
+unsafe impl Send for SharedOut {}
+unsafe impl Sync for SharedOut {}
+
+impl SharedOut {
+    /// The pointer (a method, so that closures capture the whole `Sync` wrapper).
+    fn ptr(&self) -> *mut f32 {
+        self.0
+    }
+}
+
+/// Multi-head softmax attention straight from fused qkv rows, on the CPU in f32 without
+/// gradients: `qkv` `(B, N, 3·H·D)` row-major (queries, keys, values, each `H` heads of `D`) →
+/// `(B, N, H·D)`, heads concatenated, the same as splitting the heads, [`attention`] and merging
+/// them. The fused kernel's blocks read `q`, `k`, `v` in place with row stride `3·H·D` and
+/// write each head's columns of the output in place: no split or merge copies.
+pub fn attention_qkv_rows(qkv: &[f32], (b, n, heads, d): (usize, usize, usize, usize)) -> Result<Vec<f32>> {
+    let c = heads * d;
+    if qkv.len() != b * n * 3 * c {
+        candle_core::bail!("attention: {} qkv values for ({b}, {n}, 3·{heads}·{d})", qkv.len());
+    }
+    let len = b * n * c;
+    let mut out = Vec::<f32>::with_capacity(len);
+    if len == 0 {
+        return Ok(out);
+    }
+    let scale = 1.0 / (d as f32).sqrt();
+    if crate::packed::available() {
+        let dst = SharedOut(out.as_mut_ptr());
+        (0..b * heads).into_par_iter().for_each(|bh| {
+            let (bb, hh) = (bh / heads, bh % heads);
+            let head = &qkv[bb * n * 3 * c + hh * d..];
+            // SAFETY: image bb's rows, head hh's columns of `out`, written by this task alone.
+            unsafe { packed_head(head, (n, c, d), scale, dst.ptr().add(bb * n * c + hh * d)) };
+        });
+        // SAFETY: every (image, head) task wrote its columns of every row.
+        unsafe { out.set_len(len) };
+        return Ok(out);
+    }
+    let rpb = rows_per_block(n);
+    let blocks = n.div_ceil(rpb);
+    let dst = SharedOut(out.as_mut_ptr());
+    (0..b * heads * blocks).into_par_iter().for_each(|t| {
+        let (bh, blk) = (t / blocks, t % blocks);
+        let (bb, hh) = (bh / heads, bh % heads);
+        let row0 = blk * rpb;
+        let rows = rpb.min(n - row0);
+        let base = bb * n * 3 * c + hh * d;
+        // SAFETY: every view lies inside `qkv` (rows bb·n.., columns of head hh of q, k, v) or
+        // `out` (rows row0.. of image bb, columns of head hh), which this task alone writes.
+        unsafe {
+            let views = Views {
+                q: qkv.as_ptr().add(base + row0 * 3 * c),
+                k: qkv.as_ptr().add(base + c),
+                v: qkv.as_ptr().add(base + 2 * c),
+                out: dst.ptr().add((bb * n + row0) * c + hh * d),
+                ldq: 3 * c,
+                ldk: 3 * c,
+                ldv: 3 * c,
+                ldo: c,
+            };
+            SCRATCH.with_borrow_mut(|(scores, inv)| {
+                scores.resize(rows * n, 0.0);
+                inv.resize(rows, 0.0);
+                block_raw(&views, (rows, n, d, d), scale, scores, inv);
+            });
+        }
+    });
+    // SAFETY: the tasks above wrote every value: each (image, head, block of rows) once, the
+    // second product (read_dst false) storing its whole output block.
+    unsafe { out.set_len(len) };
+    Ok(out)
+}
+
+/// Query rows per block of [`packed_head`]: a multiple of the kernel's tile rows.
+const PACKED_BLOCK_ROWS: usize = 8 * crate::packed::TILE_ROWS;
+
+/// Per-thread scratch of [`packed_head`]: the head's keys and values as panels, a block's packed
+/// queries, scores, packed probabilities and row sums.
+#[derive(Default)]
+struct HeadScratch {
+    keys: crate::packed::AlignedScratch,
+    values: crate::packed::AlignedScratch,
+    queries: Vec<f32>,
+    scores: Vec<f32>,
+    probs: Vec<f32>,
+    inv: Vec<f32>,
+}
+
+thread_local! {
+    static HEAD_SCRATCH: RefCell<HeadScratch> = RefCell::new(HeadScratch::default());
+}
+
+/// One head of [`attention_qkv_rows`] with the packed AVX-512 kernel ([`crate::packed`]):
+/// `head` starts at the head's first query value, rows `3c` apart (keys at `+c`, values at
+/// `+2c`), `n` tokens of `d` values; the output (`n` rows of `d`, `c` apart) at `out`. The keys
+/// are packed once per head as the kernel's panels (32 keys each, `d`-major), the values as
+/// panels of 32 of their `d` columns (token-major); per block of query rows: the queries packed
+/// (times `scale`), `S = Q·Kᵀ` by the kernel, the row softmax numerators and sums, the
+/// probabilities packed, `O = P·V` by the kernel, each row divided by its sum.
+///
+/// # Safety
+/// `out` is valid for the head's output, which nobody else touches meanwhile; `head` holds the
+/// rows described; the CPU has AVX-512F.
+unsafe fn packed_head(head: &[f32], (n, c, d): (usize, usize, usize), scale: f32, out: *mut f32) {
+    use crate::packed::{pack_tiles, tile_product, NR, TILE_ROWS as MR};
+    let ld = 3 * c;
+    let (kp, vp) = (n.div_ceil(NR), d.div_ceil(NR));
+    let np = kp * NR;
+    HEAD_SCRATCH.with_borrow_mut(|s| {
+        let keys = s.keys.floats_mut(kp * d * NR);
+        keys.fill(0.0);
+        for j in 0..n {
+            let (p, cc) = (j / NR, j % NR);
+            for (e, &v) in head[c + j * ld..][..d].iter().enumerate() {
+                keys[(p * d + e) * NR + cc] = v;
+            }
+        }
+        let values = s.values.floats_mut(vp * n * NR);
+        values.fill(0.0);
+        for j in 0..n {
+            for (e, &v) in head[2 * c + j * ld..][..d].iter().enumerate() {
+                values[((e / NR) * n + j) * NR + e % NR] = v;
+            }
+        }
+        let (keys, values) = (keys.as_ptr(), values.as_ptr());
+        for r0 in (0..n).step_by(PACKED_BLOCK_ROWS) {
+            let rows = PACKED_BLOCK_ROWS.min(n - r0);
+            let tiles = rows.div_ceil(MR);
+            s.queries.resize(tiles * d * MR, 0.0);
+            pack_tiles(&head[r0 * ld..], rows, d, ld, scale, &mut s.queries);
+            s.scores.resize(tiles * MR * np, 0.0);
+            for i in 0..tiles {
+                for p in 0..kp {
+                    tile_product(
+                        d,
+                        s.queries[i * d * MR..].as_ptr(),
+                        keys.add(p * d * NR),
+                        s.scores[i * MR * np + p * NR..].as_mut_ptr(),
+                        np,
+                    );
+                }
+            }
+            s.inv.resize(rows, 0.0);
+            for (r, inv) in s.inv.iter_mut().enumerate() {
+                let row = &mut s.scores[r * np..r * np + n];
+                crate::fastmath::softmax_rows_unnormalised(row, n, std::slice::from_mut(inv));
+            }
+            s.probs.resize(tiles * n * MR, 0.0);
+            pack_tiles(&s.scores, rows, n, np, 1.0, &mut s.probs);
+            for i in 0..tiles {
+                let h = MR.min(rows - i * MR);
+                for p in 0..vp {
+                    let w = NR.min(d - p * NR);
+                    let mut tmp = [0f32; MR * NR];
+                    tile_product(
+                        n,
+                        s.probs[i * n * MR..].as_ptr(),
+                        values.add(p * n * NR),
+                        tmp.as_mut_ptr(),
+                        NR,
+                    );
+                    for r in 0..h {
+                        let inv = s.inv[i * MR + r];
+                        let dst = std::slice::from_raw_parts_mut(out.add((r0 + i * MR + r) * c + p * NR), w);
+                        for (o, &v) in dst.iter_mut().zip(&tmp[r * NR..r * NR + w]) {
+                            *o = v * inv;
+                        }
+                    }
+                }
+            }
+        }
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Straight from qkv rows against an f64 computation of the definition.
+    #[test]
+    fn qkv_rows_match_f64() {
+        let (b, n, heads, d) = (2, 300, 3, 8);
+        let c = heads * d;
+        let qkv: Vec<f32> = (0..b * n * 3 * c)
+            .map(|i| ((i * 7919 % 1000) as f32 / 500.0 - 1.0) * 1.5)
+            .collect();
+        let got = attention_qkv_rows(&qkv, (b, n, heads, d)).unwrap();
+        let at = |bb: usize, t: usize, which: usize, hh: usize, j: usize| {
+            qkv[(bb * n + t) * 3 * c + which * c + hh * d + j] as f64
+        };
+        for bb in 0..b {
+            for hh in 0..heads {
+                for i in (0..n).step_by(7) {
+                    let s: Vec<f64> = (0..n)
+                        .map(|j| {
+                            (0..d).map(|e| at(bb, i, 0, hh, e) * at(bb, j, 1, hh, e)).sum::<f64>() / (d as f64).sqrt()
+                        })
+                        .collect();
+                    let max = s.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+                    let w: Vec<f64> = s.iter().map(|v| (v - max).exp()).collect();
+                    let sum: f64 = w.iter().sum();
+                    for e in 0..d {
+                        let want: f64 = (0..n).map(|j| w[j] * at(bb, j, 2, hh, e)).sum::<f64>() / sum;
+                        let g = got[(bb * n + i) * c + hh * d + e] as f64;
+                        assert!((g - want).abs() < 2e-5, "({bb}, {hh}, {i}, {e}): {g} vs {want}");
+                    }
+                }
+            }
+        }
+        assert!(attention_qkv_rows(&qkv[1..], (b, n, heads, d)).is_err());
     }
 }

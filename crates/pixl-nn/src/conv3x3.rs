@@ -326,14 +326,29 @@ impl Conv3x3 {
 
     /// `act((conv(xs) + b) + residual)`.
     pub fn apply(&self, xs: &Tensor, residual: Option<&Tensor>, act: Act) -> Result<Tensor> {
+        self.apply_relu_input(xs, false, residual, act)
+    }
+
+    /// `act((conv(relu(xs) if input_relu else xs) + b) + residual)`: on the CPU in f32 the ReLU
+    /// is applied as the kernels read the input and the skip connection is read in place (no
+    /// extra pass or copy).
+    pub fn apply_relu_input(
+        &self,
+        xs: &Tensor,
+        input_relu: bool,
+        residual: Option<&Tensor>,
+        act: Act,
+    ) -> Result<Tensor> {
         if fused::cpu_f32(xs) && residual.is_none_or(fused::cpu_f32) {
-            let skip = match residual {
-                Some(r) => Some(r.contiguous()?.flatten_all()?.to_vec1::<f32>()?),
+            let residual = residual.map(Tensor::contiguous).transpose()?;
+            let guard = residual.as_ref().map(|r| r.storage_and_layout());
+            let skip = match &guard {
+                Some((storage, layout)) => Some(fused::storage_slice(storage, layout, "3x3 convolution residual")?),
                 None => None,
             };
             let epi = Epilogue {
                 bias: self.bias.as_ref().map(Vector::values),
-                residual: skip.as_deref(),
+                residual: skip,
                 act,
             };
             let (_, _, h, w) = xs.dims4()?;
@@ -345,11 +360,14 @@ impl Conv3x3 {
                         self.winograd.get_or_init(|| wt)
                     }
                 };
-                return winograd::conv3x3_winograd(xs, wt, false, &epi, winograd::block_tiles(wt.cin(), wt.cout()));
+                let tiles = winograd::block_tiles(wt.cin(), wt.cout());
+                return winograd::conv3x3_winograd(xs, wt, input_relu, &epi, tiles);
             }
-            return conv3x3(xs, &self.im2col, self.stride, &epi);
+            let tile = tile_pixels(self.im2col.cin);
+            return conv3x3_tiled(xs, &self.im2col, self.stride, input_relu, &epi, tile);
         }
-        let ys = self.conv.forward(xs)?;
+        let xs = if input_relu { xs.relu()? } else { xs.clone() };
+        let ys = self.conv.forward(&xs)?;
         match (&self.bias, residual) {
             (Some(b), Some(r)) => bias_residual_channels(&ys, b, r, act),
             (Some(b), None) => bias_act_channels(&ys, b, act),
@@ -373,6 +391,27 @@ impl Conv3x3 {
 mod tests {
     use super::*;
     use candle_core::{Device, Module};
+
+    /// The input ReLU applied on the way equals a ReLU pass first: im2col (stride 1 small and
+    /// stride 2) and Winograd (stride 1, 64×70) shapes, with a bias, a skip connection and an
+    /// output activation.
+    #[test]
+    fn input_relu_equals_a_relu_pass_first() {
+        let dev = Device::Cpu;
+        for (stride, h, w) in [(1usize, 9usize, 13usize), (2, 9, 13), (1, 64, 70)] {
+            let (c, o) = (5, 7);
+            let xs = Tensor::randn(0f32, 1.0, (2, c, h, w), &dev).unwrap();
+            let wt = Tensor::randn(0f32, 0.3, (o, c, 3, 3), &dev).unwrap();
+            let b = Vector::new(Tensor::randn(0f32, 0.3, o, &dev).unwrap()).unwrap();
+            let conv = Conv3x3::from_parts(wt, Some(b), stride).unwrap();
+            let (ho, wo) = ((h - 1) / stride + 1, (w - 1) / stride + 1);
+            let res = Tensor::randn(0f32, 1.0, (2, o, ho, wo), &dev).unwrap();
+            let want = conv.apply(&xs.relu().unwrap(), Some(&res), Act::Relu).unwrap();
+            let got = conv.apply_relu_input(&xs, true, Some(&res), Act::Relu).unwrap();
+            let err = crate::testing::max_abs_diff(&got, &want).unwrap();
+            assert!(err < 1e-5, "stride {stride}, {h}x{w}: {err}");
+        }
+    }
 
     /// Against candle's conv2d, with bias, residual and ReLU, both strides, odd sizes.
     #[test]

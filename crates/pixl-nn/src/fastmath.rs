@@ -58,7 +58,7 @@ pub fn erf(x: f32) -> f32 {
 }
 
 #[inline(always)]
-fn gelu_generic(xs: &mut [f32]) {
+pub(crate) fn gelu_generic(xs: &mut [f32]) {
     for v in xs.iter_mut() {
         let x = *v;
         *v = (erf(x * std::f32::consts::FRAC_1_SQRT_2) + 1.0) * 0.5 * x;

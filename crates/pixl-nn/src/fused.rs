@@ -379,6 +379,7 @@ pub fn group_norm_act(xs: &Tensor, groups: usize, eps: f64, gamma: &Vector, beta
 
 /// `xs + ys·gamma`, `gamma` over the last dim (LayerScale on a residual branch).
 pub fn add_scaled_rows(xs: &Tensor, ys: &Tensor, gamma: &Vector) -> Result<Tensor> {
+    let _t = crate::profile::span("residual add");
     gamma.check(ys, true)?;
     if !cpu_f32(xs) || !cpu_f32(ys) {
         return xs + ys.broadcast_mul(&gamma.tensor)?;
@@ -590,6 +591,7 @@ pub fn residual(xs: &Tensor, ys: &Tensor) -> Result<Tensor> {
 
 /// `relu(xs)`, parallel.
 pub fn relu(xs: &Tensor) -> Result<Tensor> {
+    let _t = crate::profile::span("bias + activation");
     if !cpu_f32(xs) {
         return xs.relu();
     }
@@ -827,7 +829,8 @@ pub fn attention_qkv(qkv: &Tensor, heads: usize) -> Result<Tensor> {
 
 /// [`attention_qkv`] with queries and keys rotated by `rope = (tables, prefix)`: tokens
 /// `prefix..N` by the tables' rows (the first `prefix` tokens, registers, unrotated). On the CPU
-/// in f32 the head split and the rotation are one parallel pass; with a gradient, the whole
+/// in f32 without RoPE the kernel reads the heads in place ([`crate::attention::attention_qkv_rows`]);
+/// with it the head split and the rotation are one parallel pass; with a gradient, the whole
 /// attention is one op with its own backward ([`crate::attention_grad::qkv_attention`]).
 pub fn attention_qkv_rope(qkv: &Tensor, heads: usize, rope: Option<(&crate::Rope2d, usize)>) -> Result<Tensor> {
     let (b, n, c3) = qkv.dims3()?;
@@ -838,6 +841,16 @@ pub fn attention_qkv_rope(qkv: &Tensor, heads: usize, rope: Option<(&crate::Rope
     let tables_f32 = rope.is_none_or(|(r, _)| cpu_f32(&r.cos) && cpu_f32(&r.sin));
     if cpu_f32(qkv) && crate::needs_grad(&[qkv]) && tables_f32 {
         return crate::attention_grad::qkv_attention(qkv, heads, rope);
+    }
+    if rope.is_none() && cpu_f32(qkv) && !crate::needs_grad(&[qkv]) {
+        let _t = crate::profile::span("attention");
+        let qkv = qkv.contiguous()?;
+        let out = {
+            let (storage, layout) = qkv.storage_and_layout();
+            let rows = storage_slice(&storage, layout, "attention qkv")?;
+            crate::attention::attention_qkv_rows(rows, (b, n, heads, d))?
+        };
+        return Tensor::from_vec(out, (b, n, heads * d), qkv.device());
     }
     let split = crate::profile::span("qkv split + RoPE, head merge");
     let (q, k, v) = if cpu_f32(qkv) && !crate::needs_grad(&[qkv]) {

@@ -29,6 +29,8 @@
 //!   convolution (GEMMs in place over bias-filled outputs), the qkv head split with RoPE, and
 //!   channels-first/last copies, for inference only (the model layers call them when no
 //!   gradient is needed).
+//! - [`packed`] — f32 linear layers with weights packed once for an AVX-512 kernel whose
+//!   epilogue applies the bias, GELU and a layer-scaled residual add (ViT inference).
 //! - [`int8`] — 8-bit linear layers (weights per channel, activations per row, AVX-512 VNNI) for
 //!   faster CPU inference where the CPU has them.
 //! - [`profile`] — wall time by operation kind, off unless switched on.
@@ -49,6 +51,7 @@ pub mod mlp;
 pub mod norm;
 pub mod norm_grad;
 pub mod ops;
+pub mod packed;
 pub mod profile;
 pub mod rope;
 pub mod testing;

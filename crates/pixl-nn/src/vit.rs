@@ -16,7 +16,9 @@
 //!
 //! With no gradient needed, on the CPU in f32, every step takes pixl-nn's fused path (parallel
 //! norm, GEMM with bias and GELU in place, 8-bit linear layers after [`Block::quantize_int8`],
-//! fused attention, parallel residual adds); otherwise candle's differentiable ops.
+//! fused attention, parallel residual adds); after [`Block::pack_f32`] the linear layers run
+//! the packed AVX-512 kernel with the bias, GELU and LayerScale residual add in its epilogue;
+//! otherwise candle's differentiable ops.
 use crate::fused::{self, Act, Vector};
 use crate::{LayerNorm, Linear, Mlp, Rope2d};
 use candle_core::{Module, Result, Tensor};
@@ -66,6 +68,27 @@ impl Attention {
 
     pub fn int8_bytes(&self) -> usize {
         self.qkv.int8_bytes() + self.proj.int8_bytes()
+    }
+
+    /// `qkv` and `proj` packed for the AVX-512 f32 kernel ([`Linear::pack_f32`]); returns how
+    /// many.
+    pub fn pack_f32(&mut self) -> Result<usize> {
+        Ok(usize::from(self.qkv.pack_f32()?) + usize::from(self.proj.pack_f32()?))
+    }
+
+    /// `residual + ls ⊙ attn(xs)`, the add in `proj`'s epilogue when its weights are packed
+    /// ([`Linear::forward_residual`]), a separate pass otherwise.
+    pub fn forward_residual(
+        &self,
+        xs: &Tensor,
+        rope: Option<&PatchRope>,
+        residual: &Tensor,
+        ls: Option<&LayerScale>,
+    ) -> Result<Tensor> {
+        let qkv = self.qkv.forward_act(xs, Act::None)?;
+        let out = fused::attention_qkv_rope(&qkv, self.heads, rope.map(|r| (r.rope, r.prefix)))?;
+        drop(qkv);
+        linear_residual(&self.proj, &out, residual, ls)
     }
 
     /// `(B, N, C)` → `(B, N, C)`; RoPE rotates queries and keys when given. On the CPU in f32
@@ -135,15 +158,36 @@ impl Block {
         self.attn.int8_bytes() + self.mlp.int8_bytes()
     }
 
+    /// The attention's and the MLP's linear layers packed for the AVX-512 f32 kernel
+    /// ([`Linear::pack_f32`], inference only); returns how many.
+    pub fn pack_f32(&mut self) -> Result<usize> {
+        Ok(self.attn.pack_f32()? + usize::from(self.mlp.fc1.pack_f32()?) + usize::from(self.mlp.fc2.pack_f32()?))
+    }
+
     /// `(B, N, C)` → `(B, N, C)`; `rope` rotates the attention's queries and keys when given.
     pub fn forward(&self, xs: &Tensor, rope: Option<&PatchRope>) -> Result<Tensor> {
-        let xs = add_branch(xs, &self.attn.forward(&self.norm1.forward(xs)?, rope)?, &self.ls1)?;
-        add_branch(&xs, &self.mlp.forward(&self.norm2.forward(&xs)?)?, &self.ls2)
+        let xs = self
+            .attn
+            .forward_residual(&self.norm1.forward(xs)?, rope, xs, self.ls1.as_ref())?;
+        let hidden = self.mlp.fc1.forward_act(&self.norm2.forward(&xs)?, Act::Gelu)?;
+        linear_residual(&self.mlp.fc2, &hidden, &xs, self.ls2.as_ref())
     }
 }
 
+/// `residual + ls ⊙ linear(xs)`: in the packed kernel's epilogue where it applies, otherwise the
+/// linear layer then [`add_branch`].
+fn linear_residual(linear: &Linear, xs: &Tensor, residual: &Tensor, ls: Option<&LayerScale>) -> Result<Tensor> {
+    let differentiable_scale = ls.is_some_and(|l| crate::needs_grad(&[&l.gamma.tensor]));
+    if !differentiable_scale {
+        if let Some(out) = linear.forward_residual(xs, residual, ls.map(|l| &l.gamma))? {
+            return Ok(out);
+        }
+    }
+    add_branch(residual, &linear.forward(xs)?, ls)
+}
+
 /// `xs + ls ⊙ ys`, or the plain residual add without LayerScale.
-fn add_branch(xs: &Tensor, ys: &Tensor, ls: &Option<LayerScale>) -> Result<Tensor> {
+fn add_branch(xs: &Tensor, ys: &Tensor, ls: Option<&LayerScale>) -> Result<Tensor> {
     match ls {
         Some(ls) => ls.add_to(xs, ys),
         None => fused::residual(xs, ys),
@@ -182,6 +226,12 @@ mod tests {
         let ys = trained.forward(&xs, None)?;
         let diff = max_abs_diff(&ys, &inference.forward(&xs, None)?)?;
         assert!(diff < 1e-5, "trained and inference paths differ by {diff}");
+        // Packed for the AVX-512 kernel (bias, GELU and LayerScale residual in its epilogue).
+        let mut packed = inference.clone();
+        let layers = packed.pack_f32()?;
+        assert_eq!(layers, if crate::packed::available() { 4 } else { 0 });
+        let diff = max_abs_diff(&ys, &packed.forward(&xs, None)?)?;
+        assert!(diff < 1e-5, "trained and packed paths differ by {diff}");
         let grads = ys.sqr()?.sum_all()?.backward()?;
         let data = varmap.data().lock().unwrap();
         assert_eq!(data.len(), 14, "norms, qkv, proj, fc1, fc2 (weight, bias) and ls1, ls2");

@@ -19,6 +19,9 @@
 //! - final `norm`: `nn.LayerNorm(C)` with PyTorch's default eps **1e-5** (the blocks use 1e-6).
 //!
 //! Blocks after the last out layer do not change the outputs; they are not evaluated.
+//!
+//! On CPUs with AVX-512F the blocks' linear layers are packed at load time
+//! ([`pixl_nn::Linear::pack_f32`]): same arithmetic up to the order of the sums.
 use super::config::Da3Config;
 use super::resize::bicubic_scale;
 use candle_core::{DType, Module, Result, Tensor};
@@ -81,9 +84,14 @@ impl Backbone {
         let patch_b = Vector::new(proj.get(c, "bias")?)?;
         let last = n.out_layers.iter().copied().max().unwrap_or(0);
         let block_cfg = block_config(cfg);
-        let blocks = (0..=last)
+        let mut blocks = (0..=last)
             .map(|i| Block::new(&block_cfg, vb.pp("blocks").pp(i)))
             .collect::<Result<Vec<_>>>()?;
+        // Inference only: on CPUs with AVX-512 the blocks' f32 weights live in the packed
+        // kernel's layout (no dense copy kept), with bias, GELU and LayerScale residual fused.
+        for block in &mut blocks {
+            block.pack_f32()?;
+        }
         Ok(Self {
             patch_w,
             patch_b,

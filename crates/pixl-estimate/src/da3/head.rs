@@ -30,7 +30,7 @@ use candle_core::{Result, Tensor};
 use candle_nn::VarBuilder;
 use pixl_nn::conv3x3::Conv3x3;
 use pixl_nn::dpt::{ConvSpec, DptConv, DptFusion, DptReassemble};
-use pixl_nn::fused::{self, bias_act_channels, bias_act_rows, Act, Vector};
+use pixl_nn::fused::{bias_act_channels, bias_act_rows, Act, Vector};
 
 /// A 1×1 conv as a matrix product: weight `(out, in)`, bias `(out)`.
 #[derive(Clone, Debug)]
@@ -89,8 +89,7 @@ impl DptConv for HeadConv {
 
     fn forward_fused(&self, xs: &Tensor, input_relu: bool, residual: Option<&Tensor>, act: Act) -> Result<Tensor> {
         match self {
-            Self::K3(conv) if input_relu => conv.apply(&fused::relu(xs)?, residual, act),
-            Self::K3(conv) => conv.apply(xs, residual, act),
+            Self::K3(conv) => conv.apply_relu_input(xs, input_relu, residual, act),
             Self::K1(conv) if !input_relu && residual.is_none() => conv.forward(xs, act),
             Self::K1(_) => candle_core::bail!("DA3 head: a 1x1 convolution takes no input ReLU or skip connection"),
         }
