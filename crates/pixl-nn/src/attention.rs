@@ -258,7 +258,11 @@ pub fn attention_qkv_rows(qkv: &[f32], (b, n, heads, d): (usize, usize, usize, u
         return Ok(out);
     }
     let scale = 1.0 / (d as f32).sqrt();
-    if crate::packed::available() {
+    if !crate::packed::available() {
+        portable_qkv_rows(qkv, (b, n, heads, d), scale, &mut out);
+        return Ok(out);
+    }
+    {
         let dst = SharedOut(out.as_mut_ptr());
         (0..b * heads).into_par_iter().for_each(|bh| {
             let (bb, hh) = (bh / heads, bh % heads);
@@ -268,8 +272,16 @@ pub fn attention_qkv_rows(qkv: &[f32], (b, n, heads, d): (usize, usize, usize, u
         });
         // SAFETY: every (image, head) task wrote its columns of every row.
         unsafe { out.set_len(len) };
-        return Ok(out);
     }
+    Ok(out)
+}
+
+/// [`attention_qkv_rows`] on any CPU (the generic blocked kernel): fills `out`, empty with
+/// capacity for `B·N·H·D` values.
+fn portable_qkv_rows(qkv: &[f32], (b, n, heads, d): (usize, usize, usize, usize), scale: f32, out: &mut Vec<f32>) {
+    let c = heads * d;
+    let len = b * n * c;
+    debug_assert!(out.is_empty() && out.capacity() >= len && qkv.len() == b * n * 3 * c);
     let rpb = rows_per_block(n);
     let blocks = n.div_ceil(rpb);
     let dst = SharedOut(out.as_mut_ptr());
@@ -302,7 +314,6 @@ pub fn attention_qkv_rows(qkv: &[f32], (b, n, heads, d): (usize, usize, usize, u
     // SAFETY: the tasks above wrote every value: each (image, head, block of rows) once, the
     // second product (read_dst false) storing its whole output block.
     unsafe { out.set_len(len) };
-    Ok(out)
 }
 
 /// Query rows per block of [`packed_head`]: a multiple of the kernel's tile rows.
@@ -418,25 +429,31 @@ mod tests {
         let qkv: Vec<f32> = (0..b * n * 3 * c)
             .map(|i| ((i * 7919 % 1000) as f32 / 500.0 - 1.0) * 1.5)
             .collect();
-        let got = attention_qkv_rows(&qkv, (b, n, heads, d)).unwrap();
-        let at = |bb: usize, t: usize, which: usize, hh: usize, j: usize| {
-            qkv[(bb * n + t) * 3 * c + which * c + hh * d + j] as f64
-        };
-        for bb in 0..b {
-            for hh in 0..heads {
-                for i in (0..n).step_by(7) {
-                    let s: Vec<f64> = (0..n)
-                        .map(|j| {
-                            (0..d).map(|e| at(bb, i, 0, hh, e) * at(bb, j, 1, hh, e)).sum::<f64>() / (d as f64).sqrt()
-                        })
-                        .collect();
-                    let max = s.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
-                    let w: Vec<f64> = s.iter().map(|v| (v - max).exp()).collect();
-                    let sum: f64 = w.iter().sum();
-                    for e in 0..d {
-                        let want: f64 = (0..n).map(|j| w[j] * at(bb, j, 2, hh, e)).sum::<f64>() / sum;
-                        let g = got[(bb * n + i) * c + hh * d + e] as f64;
-                        assert!((g - want).abs() < 2e-5, "({bb}, {hh}, {i}, {e}): {g} vs {want}");
+        let fast = attention_qkv_rows(&qkv, (b, n, heads, d)).unwrap();
+        // The kernel of CPUs without AVX-512, whatever this one has.
+        let mut portable = Vec::with_capacity(fast.len());
+        portable_qkv_rows(&qkv, (b, n, heads, d), 1.0 / (d as f32).sqrt(), &mut portable);
+        for got in [fast, portable] {
+            let at = |bb: usize, t: usize, which: usize, hh: usize, j: usize| {
+                qkv[(bb * n + t) * 3 * c + which * c + hh * d + j] as f64
+            };
+            for bb in 0..b {
+                for hh in 0..heads {
+                    for i in (0..n).step_by(7) {
+                        let s: Vec<f64> = (0..n)
+                            .map(|j| {
+                                (0..d).map(|e| at(bb, i, 0, hh, e) * at(bb, j, 1, hh, e)).sum::<f64>()
+                                    / (d as f64).sqrt()
+                            })
+                            .collect();
+                        let max = s.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+                        let w: Vec<f64> = s.iter().map(|v| (v - max).exp()).collect();
+                        let sum: f64 = w.iter().sum();
+                        for e in 0..d {
+                            let want: f64 = (0..n).map(|j| w[j] * at(bb, j, 2, hh, e)).sum::<f64>() / sum;
+                            let g = got[(bb * n + i) * c + hh * d + e] as f64;
+                            assert!((g - want).abs() < 2e-5, "({bb}, {hh}, {i}, {e}): {g} vs {want}");
+                        }
                     }
                 }
             }
