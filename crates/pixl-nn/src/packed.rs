@@ -496,10 +496,7 @@ mod x86 {
 mod tests {
     use super::*;
 
-    fn val(i: usize, salt: usize) -> f32 {
-        let h = (i.wrapping_mul(2_654_435_761) ^ salt.wrapping_mul(40_503)) % 2000;
-        h as f32 / 1000.0 - 1.0
-    }
+    use crate::testing::hashed_value as val;
 
     /// The contract computed in f64 from its definition, independently of the layouts.
     #[allow(clippy::too_many_arguments)]

@@ -8,6 +8,13 @@
 //! of every [`crate::needs_grad`]-dispatching op. Inputs must be f64.
 use candle_core::{DType, Device, Result, Shape, Tensor, Var};
 
+/// A deterministic test value in [−1, 1) for index `i` of stream `salt` (a multiplicative hash:
+/// spread out, reproducible, no generator state to thread through index arithmetic).
+pub fn hashed_value(i: usize, salt: usize) -> f32 {
+    let h = (i.wrapping_mul(2_654_435_761) ^ salt.wrapping_mul(40_503)) % 2000;
+    h as f32 / 1000.0 - 1.0
+}
+
 /// SplitMix64: a tiny, seedable generator for test data (not for anything statistical).
 #[derive(Clone, Debug)]
 pub struct SplitMix64(pub u64);
