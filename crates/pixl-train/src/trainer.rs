@@ -64,6 +64,50 @@ pub struct Trainer {
     pub step: u64,
     /// The clock of a run bounded by time (`[run] max_minutes`), started by [`Trainer::run`].
     clock: Option<Clock>,
+    /// The next micro-batch, prepared on another thread while the previous step ran, with the
+    /// micro-step it belongs to (used only when that step comes; dropped when the data change).
+    prefetched: Option<(u64, Result<Batch>)>,
+}
+
+/// One micro-batch as the model takes it: source `(B,3,H,W)`, target `(B,3,H,W)` and C_T
+/// `(B,9,H,W)`, corrupted when augmentation is on.
+struct Batch {
+    src: Tensor,
+    tgt: Tensor,
+    ct: Tensor,
+    images: usize,
+}
+
+/// The micro-batch of `micro_step`: drawn by the sampler, stacked and (with `augment`) corrupted.
+/// A pure function of its arguments, so it can be prepared ahead of its step on another thread
+/// with the same result.
+fn prepare_batch(
+    sampler: &Sampler,
+    loader: &dyn Loader,
+    augment: bool,
+    seed: u64,
+    micro_step: u64,
+    device: &Device,
+) -> Result<Batch> {
+    let samples = sampler.batch(micro_step, loader)?;
+    let (src, tgt, mut ct) = Trainer::to_tensors(&samples, device)?;
+    if augment {
+        let seeds = augment_seeds(seed, micro_step, samples.len());
+        ct = pixl_intrinsics::augment::corrupt(&ct, &seeds, &pixl_intrinsics::augment::AugmentConfig::paper())?;
+    }
+    Ok(Batch {
+        src,
+        tgt,
+        ct,
+        images: samples.len(),
+    })
+}
+
+/// Per-sample corruption seeds of micro-batch `micro_step` of a run with seed `seed`.
+fn augment_seeds(seed: u64, micro_step: u64, n: usize) -> Vec<u64> {
+    (0..n)
+        .map(|i| Rng::for_stream(seed, &[STREAM_AUGMENT, micro_step, i as u64]).next_u64())
+        .collect()
 }
 
 /// When a time-bounded run started, how long it may take, and the fraction of that time that had
@@ -166,11 +210,13 @@ impl Trainer {
             device: device.clone(),
             step: 0,
             clock: None,
+            prefetched: None,
         })
     }
 
     /// Restores weights, optimiser moments and step from `out_dir/train-state.safetensors`.
     pub fn restore(&mut self) -> Result<()> {
+        self.prefetched = None;
         let path = self.state_path();
         let st = state::load(&path, &self.device)?;
         let mismatch = |what: &str, a: &str, b: &str| TrainError::File {
@@ -239,7 +285,10 @@ impl Trainer {
     /// a set that cannot be read right now (say, a manifest being replaced) adds nothing.
     pub fn refresh_data(&mut self) -> usize {
         match pixl_data::open(&self.cfg.data.dataset, self.cfg.data.split) {
-            Ok(ds) => self.sampler.add_scenes(ds.scenes().to_vec()),
+            Ok(ds) => {
+                self.prefetched = None;
+                self.sampler.add_scenes(ds.scenes().to_vec())
+            }
             Err(e) => {
                 tracing::warn!(
                     "reading the data set again: {e}; keeping the {} scenes",
@@ -300,13 +349,6 @@ impl Trainer {
         ))
     }
 
-    /// Per-sample corruption seeds of micro-batch `micro` of `step`.
-    fn augment_seeds(&self, micro_step: u64, n: usize) -> Vec<u64> {
-        (0..n)
-            .map(|i| Rng::for_stream(self.cfg.run.seed, &[STREAM_AUGMENT, micro_step, i as u64]).next_u64())
-            .collect()
-    }
-
     /// One optimiser step (with `accumulate` micro-batches).
     pub fn train_step(&mut self) -> Result<StepReport> {
         let t0 = Instant::now();
@@ -317,13 +359,19 @@ impl Trainer {
         let (mut loss_sum, mut l1_sum, mut perc_sum, mut images) = (0.0f32, 0.0f32, None::<f32>, 0usize);
         for micro in 0..accum {
             let micro_step = self.step * accum as u64 + micro as u64;
-            let samples = self.sampler.batch(micro_step, self.loader.as_ref())?;
-            images += samples.len();
-            let (src, tgt, mut ct) = Self::to_tensors(&samples, &self.device)?;
-            if self.cfg.augment.enabled {
-                let seeds = self.augment_seeds(micro_step, samples.len());
-                ct = pixl_intrinsics::augment::corrupt(&ct, &seeds, &pixl_intrinsics::augment::AugmentConfig::paper())?;
-            }
+            let (augment, seed) = (self.cfg.augment.enabled, self.cfg.run.seed);
+            let batch = match self.prefetched.take() {
+                Some((k, batch)) if k == micro_step => batch?,
+                _ => prepare_batch(
+                    &self.sampler,
+                    self.loader.as_ref(),
+                    augment,
+                    seed,
+                    micro_step,
+                    &self.device,
+                )?,
+            };
+            images += batch.images;
             let compute;
             let model = match self.cfg.optim.precision {
                 Precision::F32 => &self.model,
@@ -337,19 +385,31 @@ impl Trainer {
             } else {
                 recompute::plain
             };
-            let r = step_fn(
-                model,
-                &src,
-                &ct,
-                &tgt,
-                &Objective {
-                    perceptual: self.perceptual.as_ref(),
-                    weight: self.cfg.loss.perceptual_weight,
-                },
-                accum as f64,
-                &vars,
-                &mut grads,
-            )?;
+            // The next micro-batch is drawn on another thread while this one trains.
+            let (sampler, loader, device) = (&self.sampler, self.loader.as_ref(), &self.device);
+            let objective = Objective {
+                perceptual: self.perceptual.as_ref(),
+                weight: self.cfg.loss.perceptual_weight,
+            };
+            let (r, next) = std::thread::scope(|scope| {
+                let ahead = scope.spawn(move || prepare_batch(sampler, loader, augment, seed, micro_step + 1, device));
+                let r = step_fn(
+                    model,
+                    &batch.src,
+                    &batch.ct,
+                    &batch.tgt,
+                    &objective,
+                    accum as f64,
+                    &vars,
+                    &mut grads,
+                );
+                let next = ahead
+                    .join()
+                    .unwrap_or_else(|_| Err(TrainError::Other("preparing the next batch panicked".into())));
+                (r, next)
+            });
+            self.prefetched = Some((micro_step + 1, next));
+            let r = r?;
             loss_sum += r.loss;
             l1_sum += r.l1 / accum as f32;
             if let Some(p) = r.perceptual {
