@@ -32,7 +32,7 @@ impl WeightsArgs {
 
 /// The network's weights as `--weights` names them (shared by `relight`, `studio`, `demo`).
 pub const NETWORK_WEIGHTS_HELP: &str = "Network weights: `bundled` (the demo model compiled into pixl, \
-0.7 M parameters, permissive licence), `pixlrelight` (the paper's released model, 641 M parameters, \
+1.7 M parameters, permissive licence), `pixlrelight` (the paper's released model, 641 M parameters, \
 CC BY-NC 4.0 — non-commercial use only; fetched once, about 2.6 GB, unless --offline), or a \
 .safetensors file (ours, or the release's model.safetensors with its config.yaml beside it). \
 Default: the released model when it is on disk (`pixl models fetch pixlrelight`), else bundled";
@@ -57,7 +57,7 @@ pub fn network_weights(choice: Option<&str>, models: &WeightsArgs, ctx: &Ctx) ->
             Ok(Some(r)) => Ok(Some(model_file(&r))),
             _ => {
                 ctx.say(
-                    "using the bundled demo weights (0.7 M parameters); for the paper's model: \
+                    "using the bundled demo weights (1.7 M parameters); for the paper's model: \
                      `pixl models fetch pixlrelight` (CC BY-NC 4.0 — non-commercial use only), then run again",
                 );
                 Ok(None)
