@@ -25,6 +25,7 @@
 //! [loss]
 //! perceptual_weight = 0.2
 //! vgg = "vgg16.safetensors"
+//! ssim_weight = 0.0              # extra μ·(1 − SSIM) term, not in the paper (0 = off)
 //! [run]
 //! out_dir = "runs/tiny"
 //! steps = 200000
@@ -134,6 +135,8 @@ pub struct LossSection {
     pub perceptual_weight: f64,
     /// torchvision VGG16 weights (safetensors) for the perceptual term.
     pub vgg: Option<PathBuf>,
+    /// μ of an extra `μ · (1 − SSIM)` term (not in the paper; 0 = off). `pixl_train::loss`.
+    pub ssim_weight: f64,
 }
 
 impl Default for LossSection {
@@ -141,6 +144,7 @@ impl Default for LossSection {
         Self {
             perceptual_weight: 0.2,
             vgg: None,
+            ssim_weight: 0.0,
         }
     }
 }
@@ -221,6 +225,9 @@ impl TrainConfig {
         }
         if self.loss.perceptual_weight < 0.0 {
             return bad("[loss] perceptual_weight must be >= 0");
+        }
+        if !(self.loss.ssim_weight >= 0.0 && self.loss.ssim_weight.is_finite()) {
+            return bad("[loss] ssim_weight must be a finite number >= 0");
         }
         if self.loss.perceptual_weight > 0.0 && self.loss.vgg.is_none() {
             return bad(

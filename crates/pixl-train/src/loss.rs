@@ -6,6 +6,11 @@
 //!   relu1_2, relu2_2, relu3_3, relu4_3, relu5_3: the mean absolute difference of each tap,
 //!   averaged over the five taps with equal weight. The VGG weights are frozen (loaded as
 //!   constants, never `Var`s), so only the network receives gradients.
+//! - An optional structural term **not in the paper**, `μ · (1 − SSIM(Î_T, I_T))` ([`ssim`]; `[loss]
+//!   ssim_weight`, default 0): where no VGG weights are at hand it is the perceptual-side term we can
+//!   afford, and it rewards the local contrast a pure L1 objective tends to blur. It uses the
+//!   evaluation's SSIM (`pixl_eval::metrics::ssim`: 11×11 Gaussian σ 1.5, valid window, K1 0.01,
+//!   K2 0.03), averaged over images and channels.
 use crate::error::{Result, TrainError};
 use candle_core::{CpuStorage, CustomOp2, DType, Device, Layout, Shape, Tensor};
 use pixl_nn::backbones::{imagenet_normalize, Vgg16};
@@ -69,6 +74,8 @@ pub struct LossTerms {
 pub struct Objective<'a> {
     pub perceptual: Option<&'a Perceptual>,
     pub weight: f64,
+    /// μ of the optional `μ · (1 − SSIM)` term (0: off, the paper's objective).
+    pub ssim_weight: f64,
 }
 
 impl Objective<'_> {
@@ -77,6 +84,7 @@ impl Objective<'_> {
         Objective {
             perceptual: None,
             weight: 0.0,
+            ssim_weight: 0.0,
         }
     }
 }
@@ -97,6 +105,12 @@ pub fn loss(pred: &Tensor, target: &Tensor, objective: &Objective) -> Result<Los
         (&pred.clamp(0f32, 1f32)? - target)?.abs()?.mean_all()?
     };
     let l1_value = l1.to_scalar::<f32>()?;
+    let l1 = if objective.ssim_weight > 0.0 {
+        let s = ssim(&pred.clamp(0f32, 1f32)?, &target.detach())?;
+        (l1 + ((1.0 - s)? * objective.ssim_weight)?)?
+    } else {
+        l1
+    };
     match perceptual {
         Some(p) => {
             let clipped = pred.clamp(0f32, 1f32)?;
@@ -114,6 +128,58 @@ pub fn loss(pred: &Tensor, target: &Tensor, objective: &Objective) -> Result<Los
             perceptual: None,
         }),
     }
+}
+
+/// SSIM window side, Gaussian σ and constants (Wang et al. 2004; the same as `pixl_eval::metrics`).
+const SSIM_WIN: usize = 11;
+const SSIM_SIGMA: f64 = 1.5;
+const SSIM_C1: f64 = 0.01 * 0.01;
+const SSIM_C2: f64 = 0.03 * 0.03;
+
+/// The `(n − 10) × n` matrix whose row `i` holds the normalised 11-tap Gaussian at columns
+/// `i..i + 11`: left-multiplying a plane by it is the "valid" Gaussian filter along that axis.
+fn valid_gaussian_matrix(n: usize, dtype: DType, device: &Device) -> Result<Tensor> {
+    let r = (SSIM_WIN / 2) as f64;
+    let g: Vec<f64> = (0..SSIM_WIN)
+        .map(|i| (-(i as f64 - r).powi(2) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp())
+        .collect();
+    let sum: f64 = g.iter().sum();
+    let m = n + 1 - SSIM_WIN;
+    let mut data = vec![0f64; m * n];
+    for i in 0..m {
+        for (k, v) in g.iter().enumerate() {
+            data[i * n + i + k] = v / sum;
+        }
+    }
+    Ok(Tensor::from_vec(data, (m, n), device)?.to_dtype(dtype)?)
+}
+
+/// Mean SSIM of `(B, C, H, W)` images in `[0, 1]` (a scalar tensor that carries the graph of
+/// `pred`): the SSIM map of each channel with valid Gaussian windows, averaged over the map,
+/// channels and images. The local moments come from one separable filter pass, written as two
+/// matrix products with banded Gaussian matrices, on `[x, y, x², y², xy]` stacked along channels.
+/// Images smaller than 11×11 are an error.
+pub fn ssim(pred: &Tensor, target: &Tensor) -> Result<Tensor> {
+    let (_, c, h, w) = pred.dims4()?;
+    if h < SSIM_WIN || w < SSIM_WIN {
+        return Err(TrainError::Other(format!(
+            "SSIM needs images of at least {SSIM_WIN}x{SSIM_WIN}, got {w}x{h}"
+        )));
+    }
+    let (dtype, device) = (pred.dtype(), pred.device());
+    let gh = valid_gaussian_matrix(h, dtype, device)?;
+    let gw_t = valid_gaussian_matrix(w, dtype, device)?.t()?;
+    let stack = Tensor::cat(&[pred, target, &pred.sqr()?, &target.sqr()?, &(pred * target)?], 1)?;
+    let filtered = gh.broadcast_matmul(&stack.contiguous()?)?.broadcast_matmul(&gw_t)?;
+    let moment = |i: usize| filtered.narrow(1, i * c, c);
+    let (mx, my) = (moment(0)?, moment(1)?);
+    let (mxx, myy, mxy) = (mx.sqr()?, my.sqr()?, (&mx * &my)?);
+    let vx = (moment(2)? - &mxx)?;
+    let vy = (moment(3)? - &myy)?;
+    let cxy = (moment(4)? - &mxy)?;
+    let num = (((mxy * 2.0)? + SSIM_C1)? * ((cxy * 2.0)? + SSIM_C2)?)?;
+    let den = (((mxx + myy)? + SSIM_C1)? * ((vx + vy)? + SSIM_C2)?)?;
+    Ok((num / den)?.mean_all()?)
 }
 
 fn cpu_f32(t: &Tensor) -> bool {
@@ -272,5 +338,155 @@ mod tests {
             .to_vec1()
             .unwrap();
         assert_eq!(g, vec![0.0, 0.0, -0.25, 0.25]);
+    }
+
+    /// `(B, C, H, W)` f64 values in [0, 1] from a small LCG, and the `pixl_core::Image` (HWC) of image `b`.
+    fn random_images(b: usize, c: usize, h: usize, w: usize, seed: u64) -> (Vec<f64>, Vec<pixl_core::Image>) {
+        let mut state = seed;
+        let v: Vec<f64> = (0..b * c * h * w)
+            .map(|_| {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                // Representable in f32, so the f64 path sees exactly the images' values.
+                ((state >> 11) as f64 / (1u64 << 53) as f64) as f32 as f64
+            })
+            .collect();
+        let images = (0..b)
+            .map(|n| {
+                let mut data = vec![0f32; h * w * c];
+                for ch in 0..c {
+                    for y in 0..h {
+                        for x in 0..w {
+                            data[(y * w + x) * c + ch] = v[((n * c + ch) * h + y) * w + x] as f32;
+                        }
+                    }
+                }
+                pixl_core::Image::from_vec(w, h, c, data).unwrap()
+            })
+            .collect();
+        (v, images)
+    }
+
+    #[test]
+    fn ssim_term_equals_the_evaluation_metric() {
+        let (b, c, h, w) = (2, 3, 17, 23);
+        let (pv, pi) = random_images(b, c, h, w, 1);
+        let (tv, ti) = random_images(b, c, h, w, 2);
+        // Make the target resemble the prediction so the score is far from 0.
+        let tv: Vec<f64> = pv
+            .iter()
+            .zip(&tv)
+            .map(|(p, t)| (0.8 * *p as f32 + 0.2 * *t as f32) as f64)
+            .collect();
+        let ti: Vec<pixl_core::Image> = pi
+            .iter()
+            .zip(&ti)
+            .map(|(p, t)| {
+                let data = p.data.iter().zip(&t.data).map(|(a, b)| 0.8 * a + 0.2 * b).collect();
+                pixl_core::Image::from_vec(w, h, c, data).unwrap()
+            })
+            .collect();
+        let expected: f64 = pi
+            .iter()
+            .zip(&ti)
+            .map(|(p, t)| pixl_eval::metrics::ssim(p, t).unwrap())
+            .sum::<f64>()
+            / b as f64;
+        assert!(expected > 0.3 && expected < 0.99, "{expected}");
+        let dev = Device::Cpu;
+        for dtype in [DType::F64, DType::F32] {
+            let p = Tensor::from_vec(pv.clone(), (b, c, h, w), &dev)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            let t = Tensor::from_vec(tv.clone(), (b, c, h, w), &dev)
+                .unwrap()
+                .to_dtype(dtype)
+                .unwrap();
+            let got = ssim(&p, &t)
+                .unwrap()
+                .to_dtype(DType::F64)
+                .unwrap()
+                .to_scalar::<f64>()
+                .unwrap();
+            let tol = if dtype == DType::F64 { 1e-9 } else { 1e-5 };
+            assert!((got - expected).abs() < tol, "{dtype:?}: {got} vs {expected}");
+            let same = ssim(&p, &p)
+                .unwrap()
+                .to_dtype(DType::F64)
+                .unwrap()
+                .to_scalar::<f64>()
+                .unwrap();
+            assert!((same - 1.0).abs() < tol, "{same}");
+        }
+        let small = Tensor::zeros((1, 3, 10, 40), DType::F32, &dev).unwrap();
+        assert!(ssim(&small, &small).is_err());
+    }
+
+    #[test]
+    fn ssim_gradient_matches_finite_differences() {
+        let (b, c, h, w) = (1, 2, 12, 13);
+        let (pv, _) = random_images(b, c, h, w, 3);
+        let (tv, _) = random_images(b, c, h, w, 4);
+        let dev = Device::Cpu;
+        let t = Tensor::from_vec(tv, (b, c, h, w), &dev).unwrap();
+        let x = Var::from_tensor(&Tensor::from_vec(pv.clone(), (b, c, h, w), &dev).unwrap()).unwrap();
+        let grads = ssim(x.as_tensor(), &t).unwrap().backward().unwrap();
+        let g = grads
+            .get(x.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1::<f64>()
+            .unwrap();
+        let eval = |v: Vec<f64>| {
+            let p = Tensor::from_vec(v, (b, c, h, w), &dev).unwrap();
+            ssim(&p, &t).unwrap().to_scalar::<f64>().unwrap()
+        };
+        let eps = 1e-6;
+        for idx in [0, 5, 77, 150, 211, pv.len() - 1] {
+            let (mut up, mut down) = (pv.clone(), pv.clone());
+            up[idx] += eps;
+            down[idx] -= eps;
+            let fd = (eval(up) - eval(down)) / (2.0 * eps);
+            assert!(
+                (fd - g[idx]).abs() < 1e-7 + 1e-5 * fd.abs(),
+                "{idx}: {fd} vs {}",
+                g[idx]
+            );
+        }
+    }
+
+    #[test]
+    fn ssim_weight_adds_its_term_to_the_l1() {
+        let dev = Device::Cpu;
+        let (pv, _) = random_images(2, 3, 16, 16, 5);
+        let (tv, _) = random_images(2, 3, 16, 16, 6);
+        // Values outside [0, 1] so the clip matters.
+        let p = (Tensor::from_vec(pv, (2, 3, 16, 16), &dev)
+            .unwrap()
+            .to_dtype(DType::F32)
+            .unwrap()
+            .affine(1.4, -0.2))
+        .unwrap();
+        let t = Tensor::from_vec(tv, (2, 3, 16, 16), &dev)
+            .unwrap()
+            .to_dtype(DType::F32)
+            .unwrap();
+        let plain = loss(&p, &t, &Objective::l1_only()).unwrap();
+        let objective = Objective {
+            ssim_weight: 0.5,
+            ..Objective::l1_only()
+        };
+        let with = loss(&p, &t, &objective).unwrap();
+        let s = ssim(&p.clamp(0f32, 1f32).unwrap(), &t)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
+        let expected = plain.l1 + 0.5 * (1.0 - s);
+        let got = with.total.to_scalar::<f32>().unwrap();
+        assert!((got - expected).abs() < 1e-6, "{got} vs {expected}");
+        assert_eq!(with.l1, plain.l1);
     }
 }

@@ -195,8 +195,14 @@ impl Trainer {
             (Some(p), true) => Some(Perceptual::load(p, device)?),
             _ => None,
         };
-        if perceptual.is_none() {
-            tracing::info!("perceptual weight is 0: training with the L1 loss only");
+        match (perceptual.is_none(), cfg.loss.ssim_weight > 0.0) {
+            (true, false) => tracing::info!("perceptual weight is 0: training with the L1 loss only"),
+            (true, true) => tracing::info!(
+                "perceptual weight is 0: training with L1 + {} x (1 - SSIM)",
+                cfg.loss.ssim_weight
+            ),
+            (false, true) => tracing::info!("adding {} x (1 - SSIM) to the paper's loss", cfg.loss.ssim_weight),
+            (false, false) => {}
         }
         Ok(Self {
             cfg,
@@ -390,6 +396,7 @@ impl Trainer {
             let objective = Objective {
                 perceptual: self.perceptual.as_ref(),
                 weight: self.cfg.loss.perceptual_weight,
+                ssim_weight: self.cfg.loss.ssim_weight,
             };
             let (r, next) = std::thread::scope(|scope| {
                 let ahead = scope.spawn(move || prepare_batch(sampler, loader, augment, seed, micro_step + 1, device));
@@ -475,7 +482,8 @@ impl Trainer {
             .append(true)
             .open(&log_path)
             .map_err(|e| TrainError::io(&log_path, e))?;
-        let start = serde_json::json!({"event": "start", "step": self.step, "l1_only": self.perceptual.is_none()});
+        let start = serde_json::json!({"event": "start", "step": self.step, "l1_only": self.perceptual.is_none() && self.cfg.loss.ssim_weight == 0.0,
+            "ssim_weight": self.cfg.loss.ssim_weight});
         writeln!(log, "{start}").map_err(|e| TrainError::io(&log_path, e))?;
         let minutes = |m: f64| Duration::from_secs_f64(m * 60.0);
         self.clock = self.cfg.run.max_minutes.map(|m| Clock {
