@@ -13,6 +13,7 @@
 //!   K2 0.03), averaged over images and channels.
 use crate::error::{Result, TrainError};
 use candle_core::{CpuStorage, CustomOp2, DType, Device, Layout, Shape, Tensor};
+use pixl_eval::metrics::{ssim_gaussian_1d, SSIM_K1, SSIM_K2, SSIM_WIN};
 use pixl_nn::backbones::{imagenet_normalize, Vgg16};
 use std::path::Path;
 
@@ -98,67 +99,57 @@ impl Objective<'_> {
 /// step section), so the paper's form is the only one.
 pub fn loss(pred: &Tensor, target: &Tensor, objective: &Objective) -> Result<LossTerms> {
     let perceptual = objective.perceptual.filter(|_| objective.weight > 0.0);
-    let l1 = if perceptual.is_none() && cpu_f32(pred) && cpu_f32(target) && pred.dims() == target.dims() {
-        pred.contiguous()?
-            .apply_op2(&target.detach().contiguous()?, ClippedL1)?
+    let fused = perceptual.is_none() && cpu_f32(pred) && cpu_f32(target) && pred.dims() == target.dims();
+    // `Î_T`, made once for whichever terms read it (the fused L1 clips inside its kernel).
+    let clipped = if !fused || objective.ssim_weight > 0.0 {
+        Some(pred.clamp(0f32, 1f32)?)
     } else {
-        (&pred.clamp(0f32, 1f32)? - target)?.abs()?.mean_all()?
+        None
+    };
+    let l1 = match &clipped {
+        Some(c) if !fused => (c - target)?.abs()?.mean_all()?,
+        _ => pred
+            .contiguous()?
+            .apply_op2(&target.detach().contiguous()?, ClippedL1)?,
     };
     let l1_value = l1.to_scalar::<f32>()?;
-    let l1 = if objective.ssim_weight > 0.0 {
-        let s = ssim(&pred.clamp(0f32, 1f32)?, &target.detach())?;
-        (l1 + ((1.0 - s)? * objective.ssim_weight)?)?
-    } else {
-        l1
-    };
-    match perceptual {
-        Some(p) => {
-            let clipped = pred.clamp(0f32, 1f32)?;
-            let d = p.distance(&clipped, target)?;
-            let d_value = d.to_scalar::<f32>()?;
-            Ok(LossTerms {
-                total: (l1 + (d * objective.weight)?)?,
-                l1: l1_value,
-                perceptual: Some(d_value),
-            })
-        }
-        _ => Ok(LossTerms {
-            total: l1,
-            l1: l1_value,
-            perceptual: None,
-        }),
+    let mut total = l1;
+    if let (Some(c), true) = (&clipped, objective.ssim_weight > 0.0) {
+        let s = ssim(c, &target.detach())?;
+        total = (total + ((1.0 - s)? * objective.ssim_weight)?)?;
     }
+    let mut perceptual_value = None;
+    if let (Some(p), Some(c)) = (perceptual, &clipped) {
+        let d = p.distance(c, target)?;
+        perceptual_value = Some(d.to_scalar::<f32>()?);
+        total = (total + (d * objective.weight)?)?;
+    }
+    Ok(LossTerms {
+        total,
+        l1: l1_value,
+        perceptual: perceptual_value,
+    })
 }
 
-/// SSIM window side, Gaussian σ and constants (Wang et al. 2004; the same as `pixl_eval::metrics`).
-const SSIM_WIN: usize = 11;
-const SSIM_SIGMA: f64 = 1.5;
-const SSIM_C1: f64 = 0.01 * 0.01;
-const SSIM_C2: f64 = 0.03 * 0.03;
-
-/// The `(n − 10) × n` matrix whose row `i` holds the normalised 11-tap Gaussian at columns
-/// `i..i + 11`: left-multiplying a plane by it is the "valid" Gaussian filter along that axis.
+/// The `(n − 10) × n` matrix whose row `i` holds the evaluation's normalised 11-tap Gaussian
+/// (`pixl_eval::metrics::ssim_gaussian_1d`) at columns `i..i + 11`: left-multiplying a plane by it
+/// is the "valid" Gaussian filter along that axis.
 fn valid_gaussian_matrix(n: usize, dtype: DType, device: &Device) -> Result<Tensor> {
-    let r = (SSIM_WIN / 2) as f64;
-    let g: Vec<f64> = (0..SSIM_WIN)
-        .map(|i| (-(i as f64 - r).powi(2) / (2.0 * SSIM_SIGMA * SSIM_SIGMA)).exp())
-        .collect();
-    let sum: f64 = g.iter().sum();
+    let g = ssim_gaussian_1d();
     let m = n + 1 - SSIM_WIN;
     let mut data = vec![0f64; m * n];
     for i in 0..m {
-        for (k, v) in g.iter().enumerate() {
-            data[i * n + i + k] = v / sum;
-        }
+        data[i * n + i..i * n + i + SSIM_WIN].copy_from_slice(&g);
     }
     Ok(Tensor::from_vec(data, (m, n), device)?.to_dtype(dtype)?)
 }
 
 /// Mean SSIM of `(B, C, H, W)` images in `[0, 1]` (a scalar tensor that carries the graph of
-/// `pred`): the SSIM map of each channel with valid Gaussian windows, averaged over the map,
-/// channels and images. The local moments come from one separable filter pass, written as two
-/// matrix products with banded Gaussian matrices, on `[x, y, x², y², xy]` stacked along channels.
-/// Images smaller than 11×11 are an error.
+/// `pred`), with the evaluation's window and constants (`pixl_eval::metrics`): the SSIM map of each
+/// channel with valid Gaussian windows, averaged over the map, channels and images. The local
+/// moments come from one separable filter pass, written as two matrix products with banded
+/// Gaussian matrices, on `[x, y, x², y², xy]` stacked along channels. Images smaller than 11×11
+/// are an error.
 pub fn ssim(pred: &Tensor, target: &Tensor) -> Result<Tensor> {
     let (_, c, h, w) = pred.dims4()?;
     if h < SSIM_WIN || w < SSIM_WIN {
@@ -166,6 +157,7 @@ pub fn ssim(pred: &Tensor, target: &Tensor) -> Result<Tensor> {
             "SSIM needs images of at least {SSIM_WIN}x{SSIM_WIN}, got {w}x{h}"
         )));
     }
+    let (c1, c2) = (SSIM_K1 * SSIM_K1, SSIM_K2 * SSIM_K2);
     let (dtype, device) = (pred.dtype(), pred.device());
     let gh = valid_gaussian_matrix(h, dtype, device)?;
     let gw_t = valid_gaussian_matrix(w, dtype, device)?.t()?;
@@ -177,8 +169,8 @@ pub fn ssim(pred: &Tensor, target: &Tensor) -> Result<Tensor> {
     let vx = (moment(2)? - &mxx)?;
     let vy = (moment(3)? - &myy)?;
     let cxy = (moment(4)? - &mxy)?;
-    let num = (((mxy * 2.0)? + SSIM_C1)? * ((cxy * 2.0)? + SSIM_C2)?)?;
-    let den = (((mxx + myy)? + SSIM_C1)? * ((vx + vy)? + SSIM_C2)?)?;
+    let num = (((mxy * 2.0)? + c1)? * ((cxy * 2.0)? + c2)?)?;
+    let den = (((mxx + myy)? + c1)? * ((vx + vy)? + c2)?)?;
     Ok((num / den)?.mean_all()?)
 }
 
@@ -404,20 +396,18 @@ mod tests {
                 .unwrap()
                 .to_dtype(dtype)
                 .unwrap();
-            let got = ssim(&p, &t)
-                .unwrap()
-                .to_dtype(DType::F64)
-                .unwrap()
-                .to_scalar::<f64>()
-                .unwrap();
+            let score = |a: &Tensor, b: &Tensor| {
+                ssim(a, b)
+                    .unwrap()
+                    .to_dtype(DType::F64)
+                    .unwrap()
+                    .to_scalar::<f64>()
+                    .unwrap()
+            };
+            let got = score(&p, &t);
             let tol = if dtype == DType::F64 { 1e-9 } else { 1e-5 };
             assert!((got - expected).abs() < tol, "{dtype:?}: {got} vs {expected}");
-            let same = ssim(&p, &p)
-                .unwrap()
-                .to_dtype(DType::F64)
-                .unwrap()
-                .to_scalar::<f64>()
-                .unwrap();
+            let same = score(&p, &p);
             assert!((same - 1.0).abs() < tol, "{same}");
         }
         let small = Tensor::zeros((1, 3, 10, 40), DType::F32, &dev).unwrap();
