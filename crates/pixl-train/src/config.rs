@@ -20,6 +20,8 @@
 //! clip_norm = 1.0
 //! precision = "f32"              # f32 | bf16 (bf16 compute, f32 master weights; pixl_train::precision)
 //! checkpoint = false             # per-block gradient checkpointing (pixl_train::recompute)
+//! ema_decay = 0.0                # also keep an exponential moving average of the weights and
+//!                                # write it as model-ema.safetensors (0 = off; e.g. 0.999)
 //! [optim.schedule]
 //! peak_lr = 5e-5
 //! [loss]
@@ -110,6 +112,10 @@ pub struct OptimSection {
     /// Recompute each encoder/trunk block in the backward pass instead of keeping its
     /// activations ([`crate::recompute`]): less memory, about one more forward per step.
     pub checkpoint: bool,
+    /// Keep an exponential moving average of the weights with this decay
+    /// ([`crate::optim::Ema`]), saved with the training state and written as
+    /// `model-ema.safetensors` beside `model.safetensors`; 0 (default): none, as in the paper.
+    pub ema_decay: f64,
     pub schedule: LrSchedule,
     pub adamw: AdamWConfig,
 }
@@ -122,6 +128,7 @@ impl Default for OptimSection {
             clip_norm: 1.0,
             precision: Precision::F32,
             checkpoint: false,
+            ema_decay: 0.0,
             schedule: LrSchedule::default(),
             adamw: AdamWConfig::default(),
         }
@@ -222,6 +229,9 @@ impl TrainConfig {
         }
         if self.optim.clip_norm.is_nan() || self.optim.clip_norm <= 0.0 {
             return bad("[optim] clip_norm must be positive");
+        }
+        if !(self.optim.ema_decay >= 0.0 && self.optim.ema_decay < 1.0) {
+            return bad("[optim] ema_decay must be a number in [0, 1) (0: no average; e.g. 0.999)");
         }
         if self.loss.perceptual_weight < 0.0 {
             return bad("[loss] perceptual_weight must be >= 0");

@@ -8,6 +8,8 @@
 //!
 //! Update (PyTorch's `AdamW`, step `t` from 1): `θ ← θ·(1 − lr·wd)`, then
 //! `m ← β1·m + (1−β1)·g`, `v ← β2·v + (1−β2)·g²`, `θ ← θ − lr·(m/(1−β1ᵗ)) / (√(v/(1−β2ᵗ)) + ε)`.
+//!
+//! [`Ema`]: an optional exponential moving average of the weights (`[optim] ema_decay`).
 use candle_core::{CpuStorage, DType, Layout, Result, Tensor, Var};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
@@ -158,6 +160,44 @@ impl AdamW {
             p.v = v;
         }
         self.steps += 1;
+        Ok(())
+    }
+}
+
+/// An exponential moving average of the weights (Polyak averaging; not in the paper): after
+/// update `t` (from 0) of the optimiser, `ema ← r·ema + (1 − r)·θ` with
+/// `r = min(decay, (1 + t) / (10 + t))` — the rate ramps up over the first updates so that the
+/// average of a fresh run forgets its random start quickly. The average starts at the weights the
+/// run starts from (a fine-tune's starting weights, or the random initialisation).
+pub struct Ema {
+    pub decay: f64,
+    /// One tensor per optimiser parameter, in the optimiser's (name) order.
+    pub shadow: Vec<Tensor>,
+}
+
+impl Ema {
+    /// An average equal to the current `params`.
+    pub fn new(params: &[Param], decay: f64) -> Result<Self> {
+        let shadow = params
+            .iter()
+            .map(|p| p.var.as_tensor().detach().copy())
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self { decay, shadow })
+    }
+
+    /// The rate `r` of update `t` (0-based).
+    pub fn rate(&self, t: u64) -> f64 {
+        let t = t as f64;
+        self.decay.min((1.0 + t) / (10.0 + t))
+    }
+
+    /// Folds the weights after update `t` (0-based) of the optimiser into the average.
+    pub fn update(&mut self, params: &[Param], t: u64) -> Result<()> {
+        let r = self.rate(t);
+        for (s, p) in self.shadow.iter_mut().zip(params) {
+            let theta = p.var.as_tensor().detach();
+            *s = ((&*s * r)? + (theta * (1.0 - r))?)?.detach();
+        }
         Ok(())
     }
 }
@@ -329,6 +369,58 @@ pub fn clip_global_norm(grads: &mut [Option<Tensor>], max_norm: f64) -> Result<f
 mod tests {
     use super::*;
     use candle_core::Device;
+
+    /// The average after a few updates equals the recurrence written out in f64, with the rate
+    /// ramp `min(decay, (1 + t) / (10 + t))` and a parameter the optimiser skipped (no gradient)
+    /// still averaged at its unchanged value.
+    #[test]
+    fn ema_follows_its_recurrence() -> Result<()> {
+        let dev = Device::Cpu;
+        let mut vars = BTreeMap::new();
+        vars.insert(
+            "a.weight".to_string(),
+            Var::from_tensor(&pixl_nn::testing::uniform(&[4, 3], -1.0, 1.0, 1, &dev)?)?,
+        );
+        vars.insert(
+            "b.bias".to_string(),
+            Var::from_tensor(&pixl_nn::testing::uniform(&[5], -1.0, 1.0, 2, &dev)?)?,
+        );
+        let mut opt = AdamW::new(vars, AdamWConfig::default())?;
+        let decay = 0.6;
+        let mut ema = Ema::new(&opt.params, decay)?;
+        let flat = |t: &Tensor| -> Result<Vec<f64>> { t.flatten_all()?.to_dtype(DType::F64)?.to_vec1() };
+        let mut want: Vec<Vec<f64>> = opt
+            .params
+            .iter()
+            .map(|p| flat(p.var.as_tensor()))
+            .collect::<Result<_>>()?;
+        for t in 0..6u64 {
+            let g = pixl_nn::testing::uniform(&[4, 3], -1.0, 1.0, 50 + t, &dev)?;
+            opt.step(&[Some(g), None], 0.05)?;
+            ema.update(&opt.params, t)?;
+            let r = decay.min((1.0 + t as f64) / (10.0 + t as f64));
+            for (w, p) in want.iter_mut().zip(&opt.params) {
+                for (w, x) in w.iter_mut().zip(flat(p.var.as_tensor())?) {
+                    *w = r * *w + (1.0 - r) * x;
+                }
+            }
+        }
+        assert_eq!(ema.rate(0), 0.1);
+        assert_eq!(ema.rate(100), decay);
+        for (s, w) in ema.shadow.iter().zip(&want) {
+            let got = flat(s)?;
+            let err = got.iter().zip(w).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            assert!(err < 1e-6, "EMA differs from its recurrence by {err}");
+        }
+        // The average lags the weights: it is not simply a copy of them.
+        let lag = flat(&ema.shadow[0])?
+            .iter()
+            .zip(flat(opt.params[0].var.as_tensor())?)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
+        assert!(lag > 1e-3, "EMA equals the weights ({lag})");
+        Ok(())
+    }
 
     /// Three AdamW steps of the fused in-place CPU path (f32) against the tensor path (f64, which
     /// does not take the fused path), with and without weight decay and clipping.

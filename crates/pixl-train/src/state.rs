@@ -1,5 +1,6 @@
 //! The training checkpoint: one safetensors file holding everything a bit-exact resume needs —
-//! weights (`param.<name>`), AdamW moments (`adam_m.<name>`, `adam_v.<name>`), all f32, and in
+//! weights (`param.<name>`), AdamW moments (`adam_m.<name>`, `adam_v.<name>`), the weights'
+//! moving average when the run keeps one (`ema.<name>`, [`crate::optim::Ema`]), all f32, and in
 //! the metadata the step, the optimiser's update count, the run seed (which, with the step, is
 //! the whole RNG and data-order state: every random draw is a function of `(seed, step, index)`),
 //! the data-set fingerprint and the model config.
@@ -14,6 +15,8 @@ use std::path::Path;
 
 pub const STATE_FILE: &str = "train-state.safetensors";
 pub const MODEL_FILE: &str = "model.safetensors";
+/// The weights' moving average (`[optim] ema_decay`), a model file like [`MODEL_FILE`].
+pub const MODEL_EMA_FILE: &str = "model-ema.safetensors";
 
 /// Scalar state of a run.
 #[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]

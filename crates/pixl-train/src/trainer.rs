@@ -5,7 +5,9 @@
 //! Outputs under `run.out_dir`: `log.jsonl` (one JSON object per logged step), `samples/
 //! step_<N>.png` grids (rows: samples; columns: source | albedo | shading | residual |
 //! prediction | target), `train-state.safetensors` (full resumable state, [`crate::state`]) and
-//! `model.safetensors` (weights only, loadable by `pixl_model::load`).
+//! `model.safetensors` (weights only, loadable by `pixl_model::load`); with `[optim] ema_decay`
+//! also `model-ema.safetensors`, the weights' exponential moving average ([`Ema`]), updated after
+//! every optimiser step and resumed with the rest of the state.
 //!
 //! A run can be bounded by time (`[run] max_minutes`: the cosine of the learning rate then runs
 //! over the time, [`LrSchedule::lr_at_progress`]), checkpoint by time as well as by steps
@@ -20,17 +22,17 @@
 use crate::config::TrainConfig;
 use crate::error::{Result, TrainError};
 use crate::loss::{Objective, Perceptual};
-use crate::optim::{clip_global_norm, AdamW, LrSchedule};
+use crate::optim::{clip_global_norm, AdamW, Ema, LrSchedule};
 use crate::precision::{compute_model, Precision};
 use crate::recompute;
 use crate::sampler::{DiskLoader, Loader, Sample, Sampler};
-use crate::state::{self, Meta, State, MODEL_FILE, STATE_FILE};
+use crate::state::{self, Meta, State, MODEL_EMA_FILE, MODEL_FILE, STATE_FILE};
 use candle_core::{Device, Tensor, Var};
 use candle_nn::VarMap;
 use pixl_core::{Image, Rng};
 use pixl_data::SceneEntry;
 use pixl_model::{Config, PixlRelight};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -56,6 +58,8 @@ pub struct Trainer {
     model: PixlRelight,
     varmap: VarMap,
     opt: AdamW,
+    /// The weights' moving average (`[optim] ema_decay` > 0).
+    ema: Option<Ema>,
     sampler: Sampler,
     loader: Box<dyn Loader>,
     perceptual: Option<Perceptual>,
@@ -183,6 +187,10 @@ impl Trainer {
             init_from(path, &model_cfg, &varmap)?;
         }
         let opt = AdamW::new(vars_of(&varmap)?, cfg.optim.adamw.clone())?;
+        let ema = match cfg.optim.ema_decay {
+            d if d > 0.0 => Some(Ema::new(&opt.params, d)?),
+            _ => None,
+        };
         let sampler = Sampler::new(scenes, cfg.data.sampler.clone(), cfg.optim.batch_size, cfg.run.seed)?;
         let (coarse, pairs) = sampler.coarse_pairs();
         if coarse > 0 {
@@ -204,12 +212,20 @@ impl Trainer {
             (false, true) => tracing::info!("adding {} x (1 - SSIM) to the paper's loss", cfg.loss.ssim_weight),
             (false, false) => {}
         }
+        if ema.is_some() {
+            tracing::info!(
+                "keeping a moving average of the weights (decay {}): {}",
+                cfg.optim.ema_decay,
+                cfg.run.out_dir.join(MODEL_EMA_FILE).display()
+            );
+        }
         Ok(Self {
             cfg,
             model_cfg,
             model,
             varmap,
             opt,
+            ema,
             sampler,
             loader,
             perceptual,
@@ -256,6 +272,24 @@ impl Trainer {
             p.m = get(format!("adam_m.{}", p.name))?;
             p.v = get(format!("adam_v.{}", p.name))?;
         }
+        if let Some(ema) = self.ema.as_mut() {
+            if self
+                .opt
+                .params
+                .iter()
+                .all(|p| st.tensors.contains_key(&format!("ema.{}", p.name)))
+            {
+                for (s, p) in ema.shadow.iter_mut().zip(&self.opt.params) {
+                    *s = get(format!("ema.{}", p.name))?;
+                }
+            } else {
+                tracing::warn!(
+                    "{} holds no moving average of the weights: [optim] ema_decay starts one from the restored weights",
+                    path.display()
+                );
+                *ema = Ema::new(&self.opt.params, ema.decay)?;
+            }
+        }
         self.opt.steps = st.meta.optimizer_steps;
         self.step = st.meta.step;
         Ok(())
@@ -267,6 +301,24 @@ impl Trainer {
 
     pub fn model_path(&self) -> PathBuf {
         self.cfg.run.out_dir.join(MODEL_FILE)
+    }
+
+    /// Where the weights' moving average is written, when the run keeps one.
+    pub fn ema_model_path(&self) -> Option<PathBuf> {
+        self.ema.as_ref().map(|_| self.cfg.run.out_dir.join(MODEL_EMA_FILE))
+    }
+
+    /// The weights' moving average by parameter name, when the run keeps one.
+    pub fn ema_weights(&self) -> Option<HashMap<String, Tensor>> {
+        let ema = self.ema.as_ref()?;
+        Some(
+            self.opt
+                .params
+                .iter()
+                .zip(&ema.shadow)
+                .map(|(p, s)| (p.name.clone(), s.clone()))
+                .collect(),
+        )
     }
 
     pub fn model(&self) -> &PixlRelight {
@@ -328,6 +380,11 @@ impl Trainer {
             tensors.insert(format!("adam_m.{}", p.name), p.m.clone());
             tensors.insert(format!("adam_v.{}", p.name), p.v.clone());
         }
+        if let Some(ema) = &self.ema {
+            for (p, s) in self.opt.params.iter().zip(&ema.shadow) {
+                tensors.insert(format!("ema.{}", p.name), s.clone());
+            }
+        }
         let meta = Meta {
             format: state::FORMAT.into(),
             step: self.step,
@@ -338,6 +395,9 @@ impl Trainer {
         };
         state::save(&self.state_path(), &State { meta, tensors })?;
         pixl_model::save(&self.model_path(), &self.varmap, &self.model_cfg)?;
+        if let (Some(path), Some(weights)) = (self.ema_model_path(), self.ema_weights()) {
+            pixl_model::save_tensors(&path, &weights, &self.model_cfg)?;
+        }
         Ok(())
     }
 
@@ -431,6 +491,9 @@ impl Trainer {
         }
         let grad_norm = clip_global_norm(&mut grads, self.cfg.optim.clip_norm)?;
         self.opt.step(&grads, lr)?;
+        if let Some(ema) = self.ema.as_mut() {
+            ema.update(&self.opt.params, self.opt.steps - 1)?;
+        }
         self.step += 1;
         let secs = t0.elapsed().as_secs_f64().max(1e-9);
         Ok(StepReport {
@@ -483,7 +546,7 @@ impl Trainer {
             .open(&log_path)
             .map_err(|e| TrainError::io(&log_path, e))?;
         let start = serde_json::json!({"event": "start", "step": self.step, "l1_only": self.perceptual.is_none() && self.cfg.loss.ssim_weight == 0.0,
-            "ssim_weight": self.cfg.loss.ssim_weight});
+            "ssim_weight": self.cfg.loss.ssim_weight, "ema_decay": self.cfg.optim.ema_decay});
         writeln!(log, "{start}").map_err(|e| TrainError::io(&log_path, e))?;
         let minutes = |m: f64| Duration::from_secs_f64(m * 60.0);
         self.clock = self.cfg.run.max_minutes.map(|m| Clock {

@@ -354,3 +354,77 @@ fn a_time_limit_stops_the_run_with_a_checkpoint() {
     );
     assert!(lrs.windows(2).skip(5).all(|w| w[1] <= w[0]), "{lrs:?}");
 }
+
+/// `[optim] ema_decay`: the moving average is written as a loadable model file, differs from the
+/// weights, resumes bit-exactly with the rest of the state, and a resumed run that had none
+/// starts it from the restored weights.
+#[test]
+fn ema_weights_are_written_and_resume_bit_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    fake_set(&data, 3, 3, 32);
+    let dev = Device::Cpu;
+    let run = |out: &str, steps: &[u64], ema: &[f64]| -> Trainer {
+        let mut last = None;
+        for (i, (&until, &decay)) in steps.iter().zip(ema).enumerate() {
+            let mut cfg = small_config(&data, &dir.path().join(out));
+            cfg.optim.ema_decay = decay;
+            cfg.run.steps = until;
+            let mut t = Trainer::new(cfg, &dev).unwrap();
+            if i > 0 {
+                t.restore().unwrap();
+            }
+            t.run(|_| {}).unwrap();
+            last = Some(t);
+        }
+        last.unwrap()
+    };
+    let flat = |m: &std::collections::HashMap<String, Tensor>| -> Vec<f32> {
+        let mut names: Vec<&String> = m.keys().collect();
+        names.sort();
+        names
+            .iter()
+            .flat_map(|n| m[*n].flatten_all().unwrap().to_vec1::<f32>().unwrap())
+            .collect()
+    };
+    let straight = run("a", &[12], &[0.9]);
+    let resumed = run("b", &[5, 12], &[0.9, 0.9]);
+    let (a, b) = (straight.ema_weights().unwrap(), resumed.ema_weights().unwrap());
+    assert_eq!(flat(&a), flat(&b), "moving average differs after resume");
+
+    // Written beside the weights, loadable as a model, and not the weights themselves.
+    let path = straight.ema_model_path().unwrap();
+    assert!(path.ends_with("model-ema.safetensors"));
+    let (_, loaded) = pixl_model::checkpoint::load(&path, &dev, candle_core::DType::F32).unwrap();
+    let (_, live) = pixl_model::checkpoint::load(&straight.model_path(), &dev, candle_core::DType::F32).unwrap();
+    let src = Tensor::rand(0f32, 1.0, (1, 3, 32, 32), &dev).unwrap();
+    let ct = Tensor::rand(0f32, 1.0, (1, 9, 32, 32), &dev).unwrap();
+    let out = |m: &pixl_model::PixlRelight| -> Vec<f32> {
+        m.forward_unclipped(&src, &ct)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap()
+    };
+    let diff = out(&loaded)
+        .iter()
+        .zip(out(&live))
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max);
+    assert!(diff > 1e-5, "the moving average's output equals the weights' ({diff})");
+
+    // A run without an average, resumed with one: the average starts from the restored weights.
+    let late = run("c", &[5, 5], &[0.0, 0.9]);
+    assert_eq!(late.step, 5);
+    let (_, restored) = pixl_model::checkpoint::load(&late.model_path(), &dev, candle_core::DType::F32).unwrap();
+    let (_, avg) =
+        pixl_model::checkpoint::load(late.ema_model_path().as_ref().unwrap(), &dev, candle_core::DType::F32).unwrap();
+    assert_eq!(out(&restored), out(&avg), "a fresh average is not the restored weights");
+
+    // A decay of 1 or more would never move: refused.
+    let mut cfg = small_config(&data, &dir.path().join("d"));
+    cfg.optim.ema_decay = 1.0;
+    let e = Trainer::new(cfg, &dev).err().unwrap().to_string();
+    assert!(e.contains("ema_decay"), "{e}");
+}

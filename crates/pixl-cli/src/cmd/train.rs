@@ -4,7 +4,8 @@
 //!
 //! The output folder is checked before any work (`pixl_core::output::check_output_dir`: creatable,
 //! writable, the weights it writes are not the run's inputs). `--json` prints one document on
-//! stdout: `{config, out_dir, resumed, start_step, step, final_loss, weights, state, seconds}`;
+//! stdout: `{config, out_dir, resumed, start_step, step, final_loss, weights, ema_weights, state,
+//! seconds}` (`ema_weights` null without `[optim] ema_decay`);
 //! see `crates/pixl-cli/README.md`.
 use crate::Ctx;
 use anyhow::Context;
@@ -18,7 +19,7 @@ train.toml (every key optional; defaults are the paper's settings):\n  \
 [model]           preset = \"tiny\" | \"small\" | \"paper\" | a model config file; init_seed; init_weights (fine-tune)\n  \
 [data]            dataset = \"KIND:ROOT\" (kinds below); split = \"train\"; cache = true; refresh_every = 0 (N: add new scenes every N steps)\n  \
 [data.sampler]    long_side = 512; multiple; min_scale; aspect_min; aspect_max; flip; coarse_ct; coarse_pair_share\n  \
-[optim]           batch_size = 4; accumulate = 1; clip_norm = 1.0; precision = \"f32\" | \"bf16\"; checkpoint = false\n  \
+[optim]           batch_size = 4; accumulate = 1; clip_norm = 1.0; precision = \"f32\" | \"bf16\"; checkpoint = false;\n                  ema_decay = 0 (e.g. 0.999: also write the weights' moving average, model-ema.safetensors)\n  \
 [optim.schedule]  peak_lr = 5e-5; final_lr; warmup_steps; total_steps\n  \
 [optim.adamw]     beta1; beta2; eps; weight_decay\n  \
 [loss]            perceptual_weight = 0.2 (0: L1 only, no VGG weights needed); vgg = \"vgg16.safetensors\";\n                  ssim_weight = 0 (μ of an extra μ·(1 − SSIM) term, not in the paper)\n  \
@@ -153,14 +154,19 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             "scenes": trainer.scenes().len(),
             "final_loss": last_loss,
             "weights": trainer.model_path().display().to_string(),
+            "ema_weights": trainer.ema_model_path().map(|p| p.display().to_string()),
             "state": trainer.state_path().display().to_string(),
             "seconds": secs,
         }))?;
     }
     ctx.say(format!(
-        "trained to step {} in {secs:.1} s; weights {}",
+        "trained to step {} in {secs:.1} s; weights {}{}",
         trainer.step,
-        trainer.model_path().display()
+        trainer.model_path().display(),
+        trainer
+            .ema_model_path()
+            .map(|p| format!(", their moving average {}", p.display()))
+            .unwrap_or_default()
     ));
     Ok(())
 }
@@ -184,6 +190,7 @@ fn check_out_dir(cfg: &pixl_train::TrainConfig, config: &Path) -> anyhow::Result
         true,
         &[
             pixl_train::state::MODEL_FILE,
+            pixl_train::state::MODEL_EMA_FILE,
             pixl_train::state::STATE_FILE,
             "log.jsonl",
         ],
