@@ -428,3 +428,30 @@ fn ema_weights_are_written_and_resume_bit_exactly() {
     let e = Trainer::new(cfg, &dev).err().unwrap().to_string();
     assert!(e.contains("ema_decay"), "{e}");
 }
+
+/// Loss and averaging settings out of range are refused with the key in the message; the
+/// defaults (the paper's objective, no average) pass.
+#[test]
+fn out_of_range_loss_and_average_settings_are_refused() {
+    let mut ok = TrainConfig::default();
+    ok.data.dataset = "synth:data".into();
+    ok.loss.perceptual_weight = 0.0;
+    assert!(ok.validate().is_ok());
+    let cases: [(&str, fn(&mut TrainConfig)); 5] = [
+        ("ssim_weight", |c| c.loss.ssim_weight = -0.1),
+        ("ssim_weight", |c| c.loss.ssim_weight = f64::NAN),
+        ("ema_decay", |c| c.optim.ema_decay = -0.5),
+        ("ema_decay", |c| c.optim.ema_decay = 1.0),
+        ("ema_decay", |c| c.optim.ema_decay = f64::NAN),
+    ];
+    for (key, set) in cases {
+        let mut c = ok.clone();
+        set(&mut c);
+        let e = c.validate().err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(e.contains(key), "{key}: {e:?}");
+    }
+    let mut c = ok.clone();
+    c.loss.ssim_weight = 0.2;
+    c.optim.ema_decay = 0.999;
+    assert!(c.validate().is_ok());
+}
