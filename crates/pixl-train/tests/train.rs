@@ -437,7 +437,8 @@ fn out_of_range_loss_and_average_settings_are_refused() {
     ok.data.dataset = "synth:data".into();
     ok.loss.perceptual_weight = 0.0;
     assert!(ok.validate().is_ok());
-    let cases: [(&str, fn(&mut TrainConfig)); 5] = [
+    type Set = fn(&mut TrainConfig);
+    let cases: [(&str, Set); 5] = [
         ("ssim_weight", |c| c.loss.ssim_weight = -0.1),
         ("ssim_weight", |c| c.loss.ssim_weight = f64::NAN),
         ("ema_decay", |c| c.optim.ema_decay = -0.5),
