@@ -73,6 +73,21 @@ fn weight_decay_exemptions() {
     assert!(decays("cond_encoder.stem.0.weight", &[16, 9, 4, 4]));
 }
 
+/// The unclipped output of a model on one fixed random 32×32 source and C_T, flattened: equal
+/// outputs from two models mean equal weights as far as the tests can tell.
+fn probe(dev: &Device) -> impl Fn(&pixl_model::PixlRelight) -> Vec<f32> {
+    let src = Tensor::rand(0f32, 1.0, (1, 3, 32, 32), dev).unwrap();
+    let ct = Tensor::rand(0f32, 1.0, (1, 9, 32, 32), dev).unwrap();
+    move |m| {
+        m.forward_unclipped(&src, &ct)
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap()
+    }
+}
+
 fn small_config(root: &Path, out: &Path) -> TrainConfig {
     let mut cfg = TrainConfig::default();
     cfg.data.dataset = format!("folder:{}", root.display());
@@ -139,16 +154,7 @@ fn init_weights_starts_from_a_checkpoint() {
     a.save_checkpoint().unwrap();
     let ckpt = dir.path().join("a/model.safetensors");
 
-    let src = Tensor::rand(0f32, 1.0, (1, 3, 32, 32), &dev).unwrap();
-    let ct = Tensor::rand(0f32, 1.0, (1, 9, 32, 32), &dev).unwrap();
-    let out = |m: &pixl_model::PixlRelight| -> Vec<f32> {
-        m.forward_unclipped(&src, &ct)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap()
-    };
+    let out = probe(&dev);
     let (_, loaded) = pixl_model::checkpoint::load(&ckpt, &dev, candle_core::DType::F32).unwrap();
     let want = out(&loaded);
 
@@ -397,16 +403,7 @@ fn ema_weights_are_written_and_resume_bit_exactly() {
     assert!(path.ends_with("model-ema.safetensors"));
     let (_, loaded) = pixl_model::checkpoint::load(&path, &dev, candle_core::DType::F32).unwrap();
     let (_, live) = pixl_model::checkpoint::load(&straight.model_path(), &dev, candle_core::DType::F32).unwrap();
-    let src = Tensor::rand(0f32, 1.0, (1, 3, 32, 32), &dev).unwrap();
-    let ct = Tensor::rand(0f32, 1.0, (1, 9, 32, 32), &dev).unwrap();
-    let out = |m: &pixl_model::PixlRelight| -> Vec<f32> {
-        m.forward_unclipped(&src, &ct)
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap()
-    };
+    let out = probe(&dev);
     let diff = out(&loaded)
         .iter()
         .zip(out(&live))
