@@ -13,7 +13,7 @@
 //! checkpoint (`model.safetensors` with its `config.yaml` beside it, loaded unchanged through
 //! `pixl_model::official`; [`Network::licence`] then holds its non-commercial licence, which
 //! callers show) — else the bundled demo weights compiled into the binary ([`BUNDLED_WEIGHTS`], a
-//! `tiny` model; `assets/demo-weights/README.md`). Both kinds take the photo as sRGB values in
+//! `dim128-p8` demo model; `assets/demo-weights/README.md`). Both kinds take the photo as sRGB values in
 //! `[0, 1]` and are edge-padded to their patch size, so everything after loading is shared.
 use crate::error::{PipelineError, Result};
 use crate::observe::{Observer, Stage};
@@ -23,7 +23,7 @@ use pixl_intrinsics::ct::Ct;
 use pixl_model::fullres::{self, MemoryPlan};
 use std::path::Path;
 
-/// The bundled demo weights (a `tiny` model, see `assets/demo-weights/README.md`).
+/// The bundled demo weights (the `dim128-p8` demo model, see `assets/demo-weights/README.md`).
 pub const BUNDLED_WEIGHTS: &[u8] = include_bytes!("../../../assets/demo-weights/pixl-tiny-synth.safetensors");
 /// How the bundled weights are named in messages.
 pub const BUNDLED_NAME: &str = "bundled pixl-tiny-synth.safetensors";

@@ -31,7 +31,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, Weak};
 use std::time::{Duration, Instant};
 
-// The bundled demo weights (a `tiny` model; `assets/demo-weights/README.md`), as `pixl relight`
+// The bundled demo weights (the `dim128-p8` demo model; `assets/demo-weights/README.md`), as `pixl relight`
 // loads them.
 
 /// How the studio works; [`StudioConfig::default`] is what `pixl studio` uses.
