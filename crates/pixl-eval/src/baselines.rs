@@ -135,9 +135,23 @@ pub struct ModelMethod {
     pub label: String,
     pub model: PixlRelight,
     pub device: Device,
+    /// Longest side the network works at, as `pixl relight --max-side`: a larger pair is
+    /// area-averaged to [`pixl_model::fullres::working_size`] and the network's gain and bias
+    /// are applied to the full-size source ([`pixl_model::fullres`]). `None`: always the
+    /// image's own size.
+    pub max_side: Option<usize>,
 }
 
 impl ModelMethod {
+    /// The size the network runs at for a `width × height` pair.
+    fn working_size(&self, width: usize, height: usize) -> (usize, usize) {
+        match self.max_side {
+            Some(m) => pixl_model::fullres::working_size(width, height, m),
+            None => (width, height),
+        }
+    }
+
+    /// Source `(1,3,h,w)` and C_T `(1,9,h,w)` at the working size.
     fn inputs(&self, source: &Image, ct: Option<&Ct>) -> Result<(Tensor, Tensor)> {
         let err = |reason: String| EvalError::Method {
             method: self.label.clone(),
@@ -154,9 +168,11 @@ impl ModelMethod {
                 ct.height()
             )));
         }
-        let (w, h) = (source.width, source.height);
-        let src = Tensor::from_vec(source.to_chw(), (1, 3, h, w), &self.device).map_err(|e| err(e.to_string()))?;
-        let ct = Tensor::from_vec(ct.to_chw(), (1, 9, h, w), &self.device).map_err(|e| err(e.to_string()))?;
+        let (w, h) = self.working_size(source.width, source.height);
+        let src = pixl_core::resample::area_resize_to_chw(source, w, h).map_err(|e| err(e.to_string()))?;
+        let ct = ct.to_chw_at(w, h).map_err(|e| err(e.to_string()))?;
+        let src = Tensor::from_vec(src, (1, 3, h, w), &self.device).map_err(|e| err(e.to_string()))?;
+        let ct = Tensor::from_vec(ct, (1, 9, h, w), &self.device).map_err(|e| err(e.to_string()))?;
         Ok((src, ct))
     }
 
@@ -180,6 +196,18 @@ impl Method for ModelMethod {
     }
     fn predict(&self, source: &Image, ct: Option<&Ct>) -> Result<Image> {
         let (src, ct) = self.inputs(source, ct)?;
+        let work = self.working_size(source.width, source.height);
+        if work != (source.width, source.height) {
+            let flat = |t: Tensor| t.to_dtype(DType::F32)?.flatten_all()?.to_vec1::<f32>();
+            let (g, b) = self.model.gain_bias(&src, &ct).map_err(|e| self.err(e))?;
+            let (g, b) = (flat(g).map_err(|e| self.err(e))?, flat(b).map_err(|e| self.err(e))?);
+            let mut out = source.clone();
+            pixl_model::fullres::apply_gain_bias(&mut out, &g, &b, work.0, work.1).map_err(|e| EvalError::Method {
+                method: self.label.clone(),
+                reason: e.to_string(),
+            })?;
+            return Ok(out);
+        }
         let out = self.model.forward(&src, &ct).map_err(|e| self.err(e))?;
         let chw = out
             .squeeze(0)
@@ -335,5 +363,47 @@ mod tests {
         let img = Image::from_fn(3, 2, 3, |x, y, c| (x + y + c) as f32 / 10.0);
         assert_eq!(Identity.predict(&img, None).unwrap(), img);
         assert!(Compose::default().predict(&img, None).is_err());
+    }
+
+    /// With `max_side` below the pair's size the network runs at the working size and its gain
+    /// and bias are applied at full size — what `pixl_model::fullres::relight_full` (the code of
+    /// `pixl relight`, a separate path through the network) gives; at or above it, the plain
+    /// full-size forward.
+    #[test]
+    fn model_method_works_at_max_side_as_relight_does() {
+        let weights = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../../assets/demo-weights/pixl-tiny-synth.safetensors");
+        let model = |max_side| ModelMethod {
+            label: "ours".into(),
+            model: pixl_model::checkpoint::load(&weights, &Device::Cpu, DType::F32)
+                .unwrap()
+                .1,
+            device: Device::Cpu,
+            max_side,
+        };
+        let (w, h) = (40, 24);
+        let src = Image::from_fn(w, h, 3, |x, y, c| ((x * 7 + y * 13 + c * 5) % 17) as f32 / 17.0);
+        let group = |k: f32| Image::from_fn(w, h, 3, |x, y, c| k * (0.2 + ((x + 2 * y + c) % 9) as f32 / 10.0));
+        let ct = Ct::new(group(0.8), group(1.5), group(0.1)).unwrap();
+        let full = model(None).predict(&src, Some(&ct)).unwrap();
+        assert_eq!(model(Some(40)).predict(&src, Some(&ct)).unwrap().data, full.data);
+        let small = model(Some(16)).predict(&src, Some(&ct)).unwrap();
+        let work = pixl_model::fullres::working_size(w, h, 16);
+        assert_eq!(work, (16, 10));
+        let want = pixl_model::fullres::relight_full(
+            &model(None).model,
+            src.clone(),
+            &ct.to_chw_at(work.0, work.1).unwrap(),
+            work,
+            &Device::Cpu,
+            &mut |_, _, _| {},
+        )
+        .unwrap();
+        assert_eq!((small.width, small.height), (w, h));
+        assert_eq!(small.data, want.data);
+        assert_ne!(
+            small.data, full.data,
+            "the working size changed nothing: the test proves nothing"
+        );
     }
 }

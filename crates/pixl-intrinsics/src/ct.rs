@@ -77,6 +77,16 @@ impl Ct {
         out
     }
 
+    /// Planar `9 × oh × ow` as [`Ct::to_chw`], each group area-averaged to `ow × oh`
+    /// ([`pixl_core::resample::area_resize_to_chw`]; at the C_T's own size, the plain copy).
+    pub fn to_chw_at(&self, ow: usize, oh: usize) -> Result<Vec<f32>> {
+        let mut out = Vec::with_capacity(9 * ow * oh);
+        for img in self.groups() {
+            out.extend(pixl_core::resample::area_resize_to_chw(img, ow, oh)?);
+        }
+        Ok(out)
+    }
+
     /// Inverse of [`Ct::to_chw`].
     pub fn from_chw(width: usize, height: usize, chw: &[f32]) -> Result<Ct> {
         let n = width * height * 3;

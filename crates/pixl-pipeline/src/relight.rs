@@ -231,14 +231,7 @@ pub fn check_budget(
 
 /// Planar `9 × wh × ww` C_T at the working size: area-averaged from another size, or as is.
 pub fn ct_at_working_size(ct: &Ct, work: (usize, usize)) -> Result<Vec<f32>> {
-    if (ct.width(), ct.height()) == work {
-        return Ok(ct.to_chw());
-    }
-    let mut out = Vec::with_capacity(9 * work.0 * work.1);
-    for group in ct.groups() {
-        out.extend(fullres::area_resize_to_chw(group, work.0, work.1)?);
-    }
-    Ok(out)
+    Ok(ct.to_chw_at(work.0, work.1)?)
 }
 
 /// Runs the network at the working size `work` on `photo` (RGB, values in [0, 1], any size)

@@ -28,6 +28,10 @@
 //! perceptual_weight = 0.2
 //! vgg = "vgg16.safetensors"
 //! ssim_weight = 0.0              # extra μ·(1 − SSIM) term, not in the paper (0 = off)
+//! [augment]
+//! enabled = true                 # corrupt C_T with the paper's App. C pipeline
+//! coarse = true                  # also the samples on a coarse-reconstruction C_T (false: only
+//!                                # those on the target's exact C_T)
 //! [run]
 //! out_dir = "runs/tiny"
 //! steps = 200000
@@ -161,11 +165,19 @@ impl Default for LossSection {
 pub struct AugmentSection {
     /// Corrupt C_T on the fly with the paper's App. C pipeline (`pixl_intrinsics::augment`).
     pub enabled: bool,
+    /// Also corrupt the samples conditioned on a coarse-reconstruction C_T (`[data.sampler]
+    /// coarse_ct`, `coarse_pair_share`). The pipeline imitates the artifacts of the inference
+    /// setting on a clean C_T; a coarse C_T already carries the real ones. `false` corrupts only
+    /// the samples with the target's exact C_T (each keeps its random draws either way).
+    pub coarse: bool,
 }
 
 impl Default for AugmentSection {
     fn default() -> Self {
-        Self { enabled: true }
+        Self {
+            enabled: true,
+            coarse: true,
+        }
     }
 }
 
@@ -261,5 +273,22 @@ impl TrainConfig {
             }
         }
         self.data.sampler.validate()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `[augment]`: both keys default to on (old run configs keep their meaning) and read back.
+    #[test]
+    fn augment_section_defaults_and_reads() {
+        let cfg: TrainConfig = toml::from_str("").unwrap();
+        assert_eq!((cfg.augment.enabled, cfg.augment.coarse), (true, true));
+        let cfg: TrainConfig = toml::from_str("[augment]\ncoarse = false").unwrap();
+        assert_eq!((cfg.augment.enabled, cfg.augment.coarse), (true, false));
+        let again: TrainConfig = toml::from_str(&cfg.to_toml().unwrap()).unwrap();
+        assert_eq!(again.augment, cfg.augment);
+        assert!(toml::from_str::<TrainConfig>("[augment]\ncoarse_ct = false").is_err());
     }
 }

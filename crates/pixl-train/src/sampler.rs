@@ -122,6 +122,8 @@ pub struct Sample {
     pub target: Image,
     /// C_T of the target, 9 channels `[albedo RGB, shading RGB, residual RGB]`.
     pub ct: Image,
+    /// Whether `ct` is the coarse reconstruction's C_T of the pair rather than the target's own.
+    pub coarse_ct: bool,
     pub crop: CropRect,
     pub flipped: bool,
 }
@@ -367,6 +369,7 @@ impl Sampler {
         let by_ct = self.cfg.coarse_ct > 0.0 && rng.f32() < self.cfg.coarse_ct;
         let coarse = (forced.is_some() || (by_ct && coarse_pairs.contains(&(source_index, target_index))))
             .then(|| pixl_data::coarse_ct_path(&src_e.image, &tgt_e.image));
+        let coarse_ct = coarse.is_some();
         let ct = match coarse {
             Some(path) => loader.intrinsics(&ImageEntry {
                 image: tgt_e.image.clone(),
@@ -400,6 +403,7 @@ impl Sampler {
             source: prep(&source)?,
             target: prep(&target)?,
             ct: prep(&ct)?,
+            coarse_ct,
             crop,
             flipped,
         })

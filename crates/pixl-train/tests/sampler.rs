@@ -254,6 +254,12 @@ fn coarse_ct_is_used_where_it_exists_and_keeps_the_random_stream() {
                 0.0
             };
             assert_eq!(b.ct.data[0], b.target_index as f32 + want);
+            assert_eq!(
+                b.coarse_ct,
+                want > 0.0,
+                "the sample's coarse flag disagrees with its C_T"
+            );
+            assert!(!a.coarse_ct);
             used += (want > 0.0) as usize;
         }
     }

@@ -88,6 +88,11 @@ pub struct Args {
     /// `pixl relight --int8` runs it; applies to every --weights ("Ours (int8)", "Ours (<stem>, int8)").
     #[arg(long, requires = "weights")]
     pub int8: bool,
+    /// Longest side the network works at, as `pixl relight --max-side`: larger pairs are
+    /// area-averaged to it and the network's gain and bias applied at the image's own size.
+    /// Default: every pair at its own size.
+    #[arg(long, requires = "weights", value_parser = clap::value_parser!(u32).range(8..))]
+    pub max_side: Option<u32>,
     /// Timing protocol: untimed warm-ups.
     #[arg(long, default_value_t = pixl_eval::DEFAULT_WARMUPS)]
     pub warmups: usize,
@@ -173,6 +178,7 @@ pub fn run(args: Args, ctx: &Ctx) -> anyhow::Result<()> {
             label,
             model,
             device: device.clone(),
+            max_side: args.max_side.map(|m| m as usize),
         }));
     }
     methods.extend(pixl_eval::parse_baselines(&args.baselines)?);
