@@ -153,13 +153,9 @@ impl ModelMethod {
 
     /// Source `(1,3,h,w)` and C_T `(1,9,h,w)` at the working size.
     fn inputs(&self, source: &Image, ct: Option<&Ct>) -> Result<(Tensor, Tensor)> {
-        let err = |reason: String| EvalError::Method {
-            method: self.label.clone(),
-            reason,
-        };
-        let ct = ct.ok_or_else(|| err("needs C_T".into()))?;
+        let ct = ct.ok_or_else(|| self.err("needs C_T"))?;
         if source.channels != 3 || (ct.width(), ct.height()) != (source.width, source.height) {
-            return Err(err(format!(
+            return Err(self.err(format!(
                 "source is {}x{}x{} but C_T is {}x{}",
                 source.width,
                 source.height,
@@ -169,14 +165,14 @@ impl ModelMethod {
             )));
         }
         let (w, h) = self.working_size(source.width, source.height);
-        let src = pixl_core::resample::area_resize_to_chw(source, w, h).map_err(|e| err(e.to_string()))?;
-        let ct = ct.to_chw_at(w, h).map_err(|e| err(e.to_string()))?;
-        let src = Tensor::from_vec(src, (1, 3, h, w), &self.device).map_err(|e| err(e.to_string()))?;
-        let ct = Tensor::from_vec(ct, (1, 9, h, w), &self.device).map_err(|e| err(e.to_string()))?;
+        let src = pixl_core::resample::area_resize_to_chw(source, w, h).map_err(|e| self.err(e))?;
+        let ct = ct.to_chw_at(w, h).map_err(|e| self.err(e))?;
+        let src = Tensor::from_vec(src, (1, 3, h, w), &self.device).map_err(|e| self.err(e))?;
+        let ct = Tensor::from_vec(ct, (1, 9, h, w), &self.device).map_err(|e| self.err(e))?;
         Ok((src, ct))
     }
 
-    fn err(&self, e: candle_core::Error) -> EvalError {
+    fn err(&self, e: impl std::fmt::Display) -> EvalError {
         EvalError::Method {
             method: self.label.clone(),
             reason: e.to_string(),
@@ -202,10 +198,7 @@ impl Method for ModelMethod {
             let (g, b) = self.model.gain_bias(&src, &ct).map_err(|e| self.err(e))?;
             let (g, b) = (flat(g).map_err(|e| self.err(e))?, flat(b).map_err(|e| self.err(e))?);
             let mut out = source.clone();
-            pixl_model::fullres::apply_gain_bias(&mut out, &g, &b, work.0, work.1).map_err(|e| EvalError::Method {
-                method: self.label.clone(),
-                reason: e.to_string(),
-            })?;
+            pixl_model::fullres::apply_gain_bias(&mut out, &g, &b, work.0, work.1).map_err(|e| self.err(e))?;
             return Ok(out);
         }
         let out = self.model.forward(&src, &ct).map_err(|e| self.err(e))?;

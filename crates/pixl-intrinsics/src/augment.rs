@@ -2,10 +2,12 @@
 //! reconstructions, applied to C_T during training.
 //!
 //! Input and output: a batch of C_T tensors `(B, 9, H, W)` f32 (channel order of
-//! [`crate::ct::Ct::to_chw`]), one `u64` seed per sample. Every random decision and every random
-//! number of a sample comes from its seed alone (CPU-side [`Rng`] streams, one per augmentation,
-//! so changing one probability does not shift the draws of the others); the image arithmetic is
-//! candle tensor ops on the input's device, so training can run it on the GPU.
+//! [`crate::ct::Ct::to_chw`]), one `u64` seed per sample; [`corrupt_where`] corrupts only the
+//! chosen samples (training can leave those on a coarse reconstruction's C_T as they are). Every
+//! random decision and every random number of a sample comes from its seed alone (CPU-side
+//! [`Rng`] streams, one per augmentation, so changing one probability does not shift the draws of
+//! the others); the image arithmetic is candle tensor ops on the input's device, so training can
+//! run it on the GPU.
 //!
 //! Per sample, with the [`AugmentConfig`] defaults being Table 4:
 //! 1. **gate**: the whole pipeline fires with `p_apply` (0.70); otherwise the sample is returned
@@ -338,6 +340,28 @@ fn msg(s: String) -> candle_core::Error {
 
 /// Corrupts a batch `(B, 9, H, W)` f32, sample `b` with `seeds[b]` (see the module docs).
 pub fn corrupt(ct: &Tensor, seeds: &[u64], cfg: &AugmentConfig) -> candle_core::Result<Tensor> {
+    corrupt_masked(ct, seeds, &|_| true, cfg)
+}
+
+/// [`corrupt`] for the samples `b` with `which[b]`; the others are returned unchanged. Each
+/// corrupted sample gets exactly the values [`corrupt`] gives it (its draws come from its seed alone).
+pub fn corrupt_where(ct: &Tensor, seeds: &[u64], which: &[bool], cfg: &AugmentConfig) -> candle_core::Result<Tensor> {
+    if which.len() != seeds.len() {
+        return Err(msg(format!(
+            "corrupt: {} choices for {} seeds",
+            which.len(),
+            seeds.len()
+        )));
+    }
+    corrupt_masked(ct, seeds, &|i| which[i], cfg)
+}
+
+fn corrupt_masked(
+    ct: &Tensor,
+    seeds: &[u64],
+    chosen: &dyn Fn(usize) -> bool,
+    cfg: &AugmentConfig,
+) -> candle_core::Result<Tensor> {
     let (b, c, _, _) = ct.dims4()?;
     if c != 9 {
         return Err(msg(format!(
@@ -352,13 +376,14 @@ pub fn corrupt(ct: &Tensor, seeds: &[u64], cfg: &AugmentConfig) -> candle_core::
     }
     cfg.validate().map_err(|e| msg(e.to_string()))?;
     let plans: Vec<Plan> = seeds.iter().map(|&s| Plan::draw(s, cfg)).collect();
-    if plans.iter().all(|p| !p.applied) {
+    let applied = |i: usize| plans[i].applied && chosen(i);
+    if !(0..b).any(applied) {
         return Ok(ct.clone());
     }
     let mut out = Vec::with_capacity(b);
     for (i, (plan, &seed)) in plans.iter().zip(seeds).enumerate() {
         let x = ct.get(i)?;
-        out.push(if plan.applied { apply(&x, plan, seed, cfg)? } else { x });
+        out.push(if applied(i) { apply(&x, plan, seed, cfg)? } else { x });
     }
     Tensor::stack(&out, 0)
 }

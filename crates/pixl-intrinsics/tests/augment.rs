@@ -1,7 +1,7 @@
 //! The corruption pipeline (paper App. C): one statistical test per augmentation of its defining
 //! property, plus the gate, determinism, identity and range guarantees.
 use candle_core::{Device, Tensor};
-use pixl_intrinsics::augment::{corrupt, corrupt_ct, Aug, AugmentConfig, Plan};
+use pixl_intrinsics::augment::{corrupt, corrupt_ct, corrupt_where, Aug, AugmentConfig, Plan};
 use pixl_intrinsics::ct::Ct;
 
 const W: usize = 32;
@@ -408,4 +408,45 @@ fn bad_batches_are_refused_and_ct_convenience_matches() {
     let cfg = AugmentConfig::default();
     let seed = (0..).find(|&s| Plan::draw(s, &cfg).applied).unwrap();
     assert_eq!(corrupt_ct(&ct, seed, &cfg).unwrap().to_chw(), run(&x, seed, &cfg));
+}
+
+/// `corrupt_where` gives, sample by sample, either the input or what `corrupt` gives the whole
+/// batch; with every sample chosen, `corrupt`'s result; a wrong-length choice list is an error.
+#[test]
+fn corrupt_where_corrupts_exactly_the_chosen_samples() {
+    let (b, h, w) = (4, 12, 10);
+    let data: Vec<f32> = (0..b * 9 * h * w)
+        .map(|i| ((i * 7919) % 1000) as f32 / 1000.0)
+        .collect();
+    let ct = Tensor::from_vec(data, (b, 9, h, w), &Device::Cpu).unwrap();
+    let seeds = [11u64, 12, 13, 14];
+    let cfg = AugmentConfig::paper();
+    let all = corrupt(&ct, &seeds, &cfg).unwrap();
+    let flat = |t: &Tensor, i: usize| t.get(i).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
+    let which = [true, false, true, false];
+    // A chosen and an unchosen sample must each be changed by the pipeline under their seeds, or
+    // the test proves nothing.
+    for pick in [true, false] {
+        let changed = (0..b).any(|i| which[i] == pick && flat(&all, i) != flat(&ct, i));
+        assert!(
+            changed,
+            "no {} sample is changed by its seed",
+            if pick { "chosen" } else { "unchosen" }
+        );
+    }
+    let some = corrupt_where(&ct, &seeds, &which, &cfg).unwrap();
+    for (i, &w) in which.iter().enumerate() {
+        let want = if w { flat(&all, i) } else { flat(&ct, i) };
+        assert_eq!(flat(&some, i), want, "sample {i}");
+    }
+    let every = corrupt_where(&ct, &seeds, &[true; 4], &cfg).unwrap();
+    for i in 0..b {
+        assert_eq!(flat(&every, i), flat(&all, i));
+    }
+    let none = corrupt_where(&ct, &seeds, &[false; 4], &cfg).unwrap();
+    assert_eq!(
+        none.flatten_all().unwrap().to_vec1::<f32>().unwrap(),
+        ct.flatten_all().unwrap().to_vec1::<f32>().unwrap()
+    );
+    assert!(corrupt_where(&ct, &seeds, &[true; 3], &cfg).is_err());
 }

@@ -98,7 +98,8 @@ fn prepare_batch(
     let ct = if augment.enabled {
         let seeds = augment_seeds(seed, micro_step, samples.len());
         let corrupted: Vec<bool> = samples.iter().map(|s| augment.coarse || !s.coarse_ct).collect();
-        corrupt_some(&ct, &seeds, &corrupted)?
+        let cfg = pixl_intrinsics::augment::AugmentConfig::paper();
+        pixl_intrinsics::augment::corrupt_where(&ct, &seeds, &corrupted, &cfg)?
     } else {
         ct
     };
@@ -108,26 +109,6 @@ fn prepare_batch(
         ct,
         images: samples.len(),
     })
-}
-
-/// C_T batch `ct` with sample `i` corrupted by the paper's pipeline under `seeds[i]` where
-/// `which[i]`, the others unchanged; each corrupted sample gets the values it gets when the
-/// whole batch is corrupted (the pipeline draws per sample from its seed alone).
-fn corrupt_some(ct: &Tensor, seeds: &[u64], which: &[bool]) -> Result<Tensor> {
-    let cfg = pixl_intrinsics::augment::AugmentConfig::paper();
-    if which.iter().all(|&w| w) {
-        return Ok(pixl_intrinsics::augment::corrupt(ct, seeds, &cfg)?);
-    }
-    let mut out = Vec::with_capacity(which.len());
-    for (i, (&w, &seed)) in which.iter().zip(seeds).enumerate() {
-        let x = ct.narrow(0, i, 1)?;
-        out.push(if w {
-            pixl_intrinsics::augment::corrupt(&x, &[seed], &cfg)?
-        } else {
-            x
-        });
-    }
-    Ok(Tensor::cat(&out, 0)?)
 }
 
 /// Per-sample corruption seeds of micro-batch `micro_step` of a run with seed `seed`.
@@ -636,44 +617,4 @@ fn vstack(rows: &[Image]) -> Image {
         y0 += r.height;
     }
     out
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// Corrupting some samples of a batch gives, sample by sample, either the input or what
-    /// corrupting the whole batch gives; with every sample chosen, the whole batch's result.
-    #[test]
-    fn corrupt_some_corrupts_exactly_the_chosen_samples() {
-        let (b, h, w) = (4, 12, 10);
-        let data: Vec<f32> = (0..b * 9 * h * w)
-            .map(|i| ((i * 7919) % 1000) as f32 / 1000.0)
-            .collect();
-        let ct = Tensor::from_vec(data, (b, 9, h, w), &Device::Cpu).unwrap();
-        let seeds = [11u64, 12, 13, 14];
-        let all =
-            pixl_intrinsics::augment::corrupt(&ct, &seeds, &pixl_intrinsics::augment::AugmentConfig::paper()).unwrap();
-        let flat = |t: &Tensor, i: usize| t.get(i).unwrap().flatten_all().unwrap().to_vec1::<f32>().unwrap();
-        let which = [true, false, true, false];
-        // A chosen and an unchosen sample must each be changed by the pipeline under their
-        // seeds, or the test proves nothing.
-        for pick in [true, false] {
-            let changed = (0..b).any(|i| which[i] == pick && flat(&all, i) != flat(&ct, i));
-            assert!(
-                changed,
-                "no {} sample is changed by its seed",
-                if pick { "chosen" } else { "unchosen" }
-            );
-        }
-        let some = corrupt_some(&ct, &seeds, &which).unwrap();
-        for (i, &w) in which.iter().enumerate() {
-            let want = if w { flat(&all, i) } else { flat(&ct, i) };
-            assert_eq!(flat(&some, i), want, "sample {i}");
-        }
-        let every = corrupt_some(&ct, &seeds, &[true; 4]).unwrap();
-        for i in 0..b {
-            assert_eq!(flat(&every, i), flat(&all, i));
-        }
-    }
 }
