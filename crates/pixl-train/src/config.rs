@@ -28,6 +28,8 @@
 //! perceptual_weight = 0.2
 //! vgg = "vgg16.safetensors"
 //! ssim_weight = 0.0              # extra μ·(1 − SSIM) term, not in the paper (0 = off)
+//! scale_corrected = 0.0          # share ν of the pixel term taken after the evaluation's
+//!                                # per-channel scale correction, not in the paper (0 = off)
 //! [augment]
 //! enabled = true                 # corrupt C_T with the paper's App. C pipeline
 //! coarse = true                  # also the samples on a coarse-reconstruction C_T (false: only
@@ -148,6 +150,9 @@ pub struct LossSection {
     pub vgg: Option<PathBuf>,
     /// μ of an extra `μ · (1 − SSIM)` term (not in the paper; 0 = off). `pixl_train::loss`.
     pub ssim_weight: f64,
+    /// ν in `[0, 1]`: the pixel term becomes `(1 − ν)·L1 + ν·L1` of the scale-corrected output
+    /// (not in the paper; 0 = off). `pixl_train::loss`.
+    pub scale_corrected: f64,
 }
 
 impl Default for LossSection {
@@ -156,6 +161,7 @@ impl Default for LossSection {
             perceptual_weight: 0.2,
             vgg: None,
             ssim_weight: 0.0,
+            scale_corrected: 0.0,
         }
     }
 }
@@ -250,6 +256,9 @@ impl TrainConfig {
         }
         if !(self.loss.ssim_weight >= 0.0 && self.loss.ssim_weight.is_finite()) {
             return bad("[loss] ssim_weight must be a finite number >= 0");
+        }
+        if !(0.0..=1.0).contains(&self.loss.scale_corrected) {
+            return bad("[loss] scale_corrected must be a number in [0, 1] (the share of the scale-corrected L1)");
         }
         if self.loss.perceptual_weight > 0.0 && self.loss.vgg.is_none() {
             return bad(

@@ -11,6 +11,12 @@
 //!   afford, and it rewards the local contrast a pure L1 objective tends to blur. It uses the
 //!   evaluation's SSIM (`pixl_eval::metrics::ssim`: 11×11 Gaussian σ 1.5, valid window, K1 0.01,
 //!   K2 0.03), averaged over images and channels.
+//! - An optional **scale-corrected** share of the pixel term, **not in the paper** (`[loss]
+//!   scale_corrected` = ν, default 0): `(1 − ν)·‖Î_T − I_T‖₁ + ν·‖clip(s ⊙ Î_T, 0, 1) − I_T‖₁`, with
+//!   `s` the evaluation's per-image, per-channel least-squares scale (`pixl_eval::metrics::
+//!   scale_correct`: `s_c = Σ I_T·Î_T / Σ Î_T²`, held constant in the backward pass and kept within
+//!   `[1/4, 4]`). The evaluation forgives a prediction's exposure and per-channel gain; this share
+//!   stops spending the gradient on them ([`scale_corrected_l1`]).
 use crate::error::{Result, TrainError};
 use candle_core::{CpuStorage, CustomOp2, DType, Device, Layout, Shape, Tensor};
 use pixl_eval::metrics::{ssim_gaussian_1d, SSIM_K1, SSIM_K2, SSIM_WIN};
@@ -77,6 +83,8 @@ pub struct Objective<'a> {
     pub weight: f64,
     /// μ of the optional `μ · (1 − SSIM)` term (0: off, the paper's objective).
     pub ssim_weight: f64,
+    /// ν, the share of the pixel term taken after the scale correction (0: off, the paper's).
+    pub scale_corrected: f64,
 }
 
 impl Objective<'_> {
@@ -86,6 +94,7 @@ impl Objective<'_> {
             perceptual: None,
             weight: 0.0,
             ssim_weight: 0.0,
+            scale_corrected: 0.0,
         }
     }
 }
@@ -101,7 +110,8 @@ pub fn loss(pred: &Tensor, target: &Tensor, objective: &Objective) -> Result<Los
     let perceptual = objective.perceptual.filter(|_| objective.weight > 0.0);
     let fused = perceptual.is_none() && cpu_f32(pred) && cpu_f32(target) && pred.dims() == target.dims();
     // `Î_T`, made once for whichever terms read it (the fused L1 clips inside its kernel).
-    let clipped = if !fused || objective.ssim_weight > 0.0 {
+    let corrected = objective.scale_corrected > 0.0;
+    let clipped = if !fused || objective.ssim_weight > 0.0 || corrected {
         Some(pred.clamp(0f32, 1f32)?)
     } else {
         None
@@ -114,6 +124,10 @@ pub fn loss(pred: &Tensor, target: &Tensor, objective: &Objective) -> Result<Los
     };
     let l1_value = l1.to_scalar::<f32>()?;
     let mut total = l1;
+    if let (Some(c), true) = (&clipped, corrected) {
+        let nu = objective.scale_corrected;
+        total = ((total * (1.0 - nu))? + (scale_corrected_l1(c, target)? * nu)?)?;
+    }
     if let (Some(c), true) = (&clipped, objective.ssim_weight > 0.0) {
         let s = ssim(c, &target.detach())?;
         total = (total + ((1.0 - s)? * objective.ssim_weight)?)?;
@@ -129,6 +143,23 @@ pub fn loss(pred: &Tensor, target: &Tensor, objective: &Objective) -> Result<Los
         l1: l1_value,
         perceptual: perceptual_value,
     })
+}
+
+/// Bounds of the scale in [`scale_corrected_l1`]: a prediction that far off in exposure is not
+/// forgiven further (and a black one does not divide by zero).
+const SCALE_BOUNDS: (f32, f32) = (0.25, 4.0);
+
+/// `mean |clip(s ⊙ x, 0, 1) − target|` for `x` = the clipped output `(B, C, H, W)`, with
+/// `s_{b,c} = Σ target·x / Σ x²` over each image's channel (the evaluation's least-squares scale),
+/// clamped to [`SCALE_BOUNDS`] and held constant in the backward pass: the gradient is that of
+/// the L1 of a prediction multiplied by a fixed gain, so it carries no push towards an exposure.
+pub fn scale_corrected_l1(clipped: &Tensor, target: &Tensor) -> Result<Tensor> {
+    let target = target.detach();
+    let num = (clipped * &target)?.sum_keepdim((2, 3))?;
+    let den = clipped.sqr()?.sum_keepdim((2, 3))?;
+    let scale = (num / (den + 1e-12)?)?.clamp(SCALE_BOUNDS.0, SCALE_BOUNDS.1)?.detach();
+    let corrected = clipped.broadcast_mul(&scale)?.clamp(0f32, 1f32)?;
+    Ok((corrected - target)?.abs()?.mean_all()?)
 }
 
 /// The `(n − 10) × n` matrix whose row `i` holds the evaluation's normalised 11-tap Gaussian
@@ -478,5 +509,82 @@ mod tests {
         let got = with.total.to_scalar::<f32>().unwrap();
         assert!((got - expected).abs() < 1e-6, "{got} vs {expected}");
         assert_eq!(with.l1, plain.l1);
+    }
+
+    /// The scale-corrected share against a naive f64 evaluation: per image and channel the
+    /// least-squares scale of the clipped output (clamped to [1/4, 4]), the L1 of the rescaled and
+    /// re-clipped output, mixed with the plain L1 by ν; its gradient is `ν · s · sign(s·x − t) / n`
+    /// where `0 < x < 1` and `s·x < 1`, plus the plain term's `(1 − ν) · sign(x − t) / n`.
+    #[test]
+    fn scale_corrected_share_matches_a_naive_evaluation() {
+        let dev = Device::Cpu;
+        let (b, c, hw) = (2usize, 3usize, 6usize);
+        let p: Vec<f32> = (0..b * c * hw)
+            .map(|i| (i as f32 * 0.713).sin() * 0.6 + 0.45 + if i / hw == 4 { -0.3 } else { 0.0 })
+            .collect();
+        let t: Vec<f32> = (0..b * c * hw).map(|i| (i as f32 * 1.37).cos() * 0.35 + 0.5).collect();
+        let x = Var::from_vec(p.clone(), (b, c, 2, 3), &dev).unwrap();
+        let tt = Tensor::from_vec(t.clone(), (b, c, 2, 3), &dev).unwrap();
+        let nu = 0.75f64;
+        let objective = Objective {
+            scale_corrected: nu,
+            ..Objective::l1_only()
+        };
+        let terms = loss(x.as_tensor(), &tt, &objective).unwrap();
+        let n = p.len() as f64;
+        let (mut plain, mut corr) = (0f64, 0f64);
+        let mut grad = vec![0f64; p.len()];
+        for plane in 0..b * c {
+            let r = plane * hw..(plane + 1) * hw;
+            let xs: Vec<f64> = p[r.clone()].iter().map(|&v| (v as f64).clamp(0.0, 1.0)).collect();
+            let ts: Vec<f64> = t[r.clone()].iter().map(|&v| v as f64).collect();
+            let num: f64 = xs.iter().zip(&ts).map(|(a, b)| a * b).sum();
+            let den: f64 = xs.iter().map(|a| a * a).sum();
+            let s = (num / den).clamp(0.25, 4.0);
+            for k in 0..hw {
+                let (xv, tv, raw) = (xs[k], ts[k], p[plane * hw + k] as f64);
+                plain += (xv - tv).abs();
+                let sx = (s * xv).clamp(0.0, 1.0);
+                corr += (sx - tv).abs();
+                let inside = raw > 0.0 && raw < 1.0;
+                if inside {
+                    grad[plane * hw + k] += (1.0 - nu) * (xv - tv).signum() / n;
+                    if s * xv < 1.0 {
+                        grad[plane * hw + k] += nu * s * (sx - tv).signum() / n;
+                    }
+                }
+            }
+        }
+        let want = (1.0 - nu) * plain / n + nu * corr / n;
+        let got = terms.total.to_scalar::<f32>().unwrap() as f64;
+        assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+        assert!(
+            (terms.l1 as f64 - plain / n).abs() < 1e-6,
+            "the logged L1 stays the plain one"
+        );
+        // The scale was not all ones, or the test would not tell the two terms apart.
+        assert!((corr - plain).abs() > 1e-3 * n);
+        let store = terms.total.backward().unwrap();
+        let g: Vec<f32> = store
+            .get(x.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        for (k, (a, w)) in g.iter().zip(&grad).enumerate() {
+            assert!((*a as f64 - w).abs() < 1e-6, "gradient {k}: {a} vs {w}");
+        }
+        // Scaling a prediction that stays inside (0, 1) leaves the corrected term unchanged.
+        let half = Tensor::from_vec(
+            p.iter().map(|v| v.clamp(0.01, 0.99) * 0.5).collect::<Vec<f32>>(),
+            (b, c, 2, 3),
+            &dev,
+        )
+        .unwrap();
+        let full = (&half * 2.0).unwrap();
+        let a = scale_corrected_l1(&half, &tt).unwrap().to_scalar::<f32>().unwrap();
+        let c2 = scale_corrected_l1(&full, &tt).unwrap().to_scalar::<f32>().unwrap();
+        assert!((a - c2).abs() < 1e-6, "{a} vs {c2}");
     }
 }

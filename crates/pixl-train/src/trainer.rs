@@ -216,6 +216,12 @@ impl Trainer {
             (false, true) => tracing::info!("adding {} x (1 - SSIM) to the paper's loss", cfg.loss.ssim_weight),
             (false, false) => {}
         }
+        if cfg.loss.scale_corrected > 0.0 {
+            tracing::info!(
+                "{} of the L1 term taken after a per-channel least-squares scale correction",
+                cfg.loss.scale_corrected
+            );
+        }
         if ema.is_some() {
             tracing::info!(
                 "keeping a moving average of the weights (decay {}): {}",
@@ -461,6 +467,7 @@ impl Trainer {
                 perceptual: self.perceptual.as_ref(),
                 weight: self.cfg.loss.perceptual_weight,
                 ssim_weight: self.cfg.loss.ssim_weight,
+                scale_corrected: self.cfg.loss.scale_corrected,
             };
             let (r, next) = std::thread::scope(|scope| {
                 let ahead = scope.spawn(move || prepare_batch(sampler, loader, augment, seed, micro_step + 1, device));

@@ -22,7 +22,7 @@ train.toml (every key optional; defaults are the paper's settings):\n  \
 [optim]           batch_size = 4; accumulate = 1; clip_norm = 1.0; precision = \"f32\" | \"bf16\"; checkpoint = false;\n                  ema_decay = 0 (e.g. 0.999: also write the weights' moving average, model-ema.safetensors)\n  \
 [optim.schedule]  peak_lr = 5e-5; final_lr; warmup_steps; total_steps\n  \
 [optim.adamw]     beta1; beta2; eps; weight_decay\n  \
-[loss]            perceptual_weight = 0.2 (0: L1 only, no VGG weights needed); vgg = \"vgg16.safetensors\";\n                  ssim_weight = 0 (μ of an extra μ·(1 − SSIM) term, not in the paper)\n  \
+[loss]            perceptual_weight = 0.2 (0: L1 only, no VGG weights needed); vgg = \"vgg16.safetensors\";\n                  ssim_weight = 0 (μ of an extra μ·(1 − SSIM) term, not in the paper);\n                  scale_corrected = 0 (share of the L1 taken after `pixl eval`'s per-channel scale correction)\n  \
 [augment]         enabled = true (corrupt C_T on the fly with the paper's App. C pipeline; see `pixl augment`);\n                  coarse = true (also the samples on a coarse-reconstruction C_T; false: only those on exact C_T)\n  \
 [run]             out_dir; steps; seed; log_every; sample_every; checkpoint_every; max_minutes; checkpoint_minutes\n\
 Config files: assets/demo-weights/train.toml (a small run on a `pixl synth` set in /tmp/demo/synth);\n\
