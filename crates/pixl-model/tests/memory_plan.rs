@@ -102,9 +102,12 @@ fn planned_bytes_bound_the_measured_peak_closely() {
                 measured / 1e6
             ));
             // The first run also allocates the kernels' workspace, whose size follows the CPU's
-            // caches; the plan allows the largest measured, so it may overestimate more there.
-            let upper = if cold { 1.5 } else { 1.25 };
-            assert!((1.0..upper).contains(&ratio), "{}", report.join("\n"));
+            // caches (2.9 MB per thread on a Xeon with 2 MiB of L2 per core, less with smaller
+            // caches); the plan allows the largest, so there the bound must hold and the rest of
+            // the plan, without that allowance, must be as tight as in the later runs.
+            assert!(ratio >= 1.0, "{}", report.join("\n"));
+            let tight = if cold { (planned - workspace) / measured } else { ratio };
+            assert!(tight < 1.25, "{}", report.join("\n"));
             cold = false;
         }
     }
