@@ -304,7 +304,19 @@ impl CustomOp2 for ClippedL1Grad {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use candle_core::Var;
+    use candle_core::{Var, WithDType};
+
+    /// The gradient of the scalar `total` with respect to `x`, flattened.
+    fn grad_of<T: WithDType>(total: &Tensor, x: &Var) -> Vec<T> {
+        let store = total.backward().unwrap();
+        store
+            .get(x.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap()
+    }
 
     /// The fused CPU op against candle's composed clamp/sub/abs/mean on the same values, value
     /// and gradient, with pixels outside, inside and exactly on the clip bounds and ties with
@@ -326,16 +338,7 @@ mod tests {
             .unwrap();
         let want = composed.to_scalar::<f32>().unwrap();
         assert!((fused.l1 - want).abs() < 1e-6, "{} vs {want}", fused.l1);
-        let grad = |total: &Tensor| -> Vec<f32> {
-            let store = (total * 3.0).unwrap().backward().unwrap();
-            store
-                .get(x.as_tensor())
-                .unwrap()
-                .flatten_all()
-                .unwrap()
-                .to_vec1()
-                .unwrap()
-        };
+        let grad = |total: &Tensor| -> Vec<f32> { grad_of(&(total * 3.0).unwrap(), &x) };
         // Same signs and masks; the scale 1/n rounds differently.
         for (a, b) in grad(&fused.total).iter().zip(grad(&composed)) {
             assert!((a - b).abs() <= 1e-6 * b.abs().max(1e-3), "{a} vs {b}");
@@ -352,14 +355,7 @@ mod tests {
         let terms = loss(x.as_tensor(), &t, &Objective::l1_only()).unwrap();
         // Hand value: (|1 − 0.5| + |0 − 0.2| + |0.3 − 0.6| + |0.9 − 0.4|) / 4.
         assert!((terms.l1 - 1.5 / 4.0).abs() < 1e-6, "{}", terms.l1);
-        let store = terms.total.backward().unwrap();
-        let g: Vec<f32> = store
-            .get(x.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
+        let g: Vec<f32> = grad_of(&terms.total, &x);
         assert_eq!(g, vec![0.0, 0.0, -0.25, 0.25]);
     }
 
@@ -453,14 +449,7 @@ mod tests {
         let dev = Device::Cpu;
         let t = Tensor::from_vec(tv, (b, c, h, w), &dev).unwrap();
         let x = Var::from_tensor(&Tensor::from_vec(pv.clone(), (b, c, h, w), &dev).unwrap()).unwrap();
-        let grads = ssim(x.as_tensor(), &t).unwrap().backward().unwrap();
-        let g = grads
-            .get(x.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1::<f64>()
-            .unwrap();
+        let g: Vec<f64> = grad_of(&ssim(x.as_tensor(), &t).unwrap(), &x);
         let eval = |v: Vec<f64>| {
             let p = Tensor::from_vec(v, (b, c, h, w), &dev).unwrap();
             ssim(&p, &t).unwrap().to_scalar::<f64>().unwrap()
@@ -564,14 +553,7 @@ mod tests {
         );
         // The scale was not all ones, or the test would not tell the two terms apart.
         assert!((corr - plain).abs() > 1e-3 * n);
-        let store = terms.total.backward().unwrap();
-        let g: Vec<f32> = store
-            .get(x.as_tensor())
-            .unwrap()
-            .flatten_all()
-            .unwrap()
-            .to_vec1()
-            .unwrap();
+        let g: Vec<f32> = grad_of(&terms.total, &x);
         for (k, (a, w)) in g.iter().zip(&grad).enumerate() {
             assert!((*a as f64 - w).abs() < 1e-6, "gradient {k}: {a} vs {w}");
         }
