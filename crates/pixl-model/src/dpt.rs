@@ -2,8 +2,9 @@
 //! turns the four trunk readouts into one dense map `F` of `C' = head.hidden` channels at full
 //! resolution.
 //!
-//! Input four `(B, d, gh, gw)` readouts and the padded image size `(H, W) = (p·gh, p·gw)` (`p` the patch size);
-//! output `F`: `(B, C', H, W)`, non-negative (ReLU).
+//! Input four `(B, d, gh, gw)` readouts and the padded inputs `I_S` `(B, 3, H, W)` and `C_T`
+//! `(B, 9, H, W)`, `(H, W) = (p·gh, p·gw)` (`p` the patch size); output `F`: `(B, C' + k, H, W)`,
+//! non-negative (ReLU), `k = head.input_skip` (0 in the paper: the inputs are not read here).
 //!
 //! Steps and names (Depth Anything v2 `DPTHead`):
 //! 1. `projects.{i}`: 1×1 conv `d → out_channels[i]`;
@@ -17,7 +18,12 @@
 //!    stride 2) and applies `out_conv` (1×1). A residual conv unit is
 //!    `x + conv2(relu(conv1(relu(x))))` with 3×3 convs;
 //! 5. `scratch.output_conv1` (3×3, `features → features/2`), bilinear resize to `(H, W)`,
-//!    `scratch.output_conv2.0` (3×3, `features/2 → C'`), ReLU.
+//!    `scratch.output_conv2.0` (3×3, `features/2 → C'`), ReLU;
+//! 6. only with `head.input_skip = k > 0` (**not in the paper**): `input_skip`, a 1×1 conv
+//!    `C' + 12 → k` with ReLU over `[F; I_S; C_T]`, appended to `F`. The tokens carry each
+//!    `p × p` patch as one vector; this lets the modulation follow the inputs' own pixels
+//!    (a shadow edge in `C_T`, the source's albedo-to-intensity ratio) at the cost of
+//!    `(C' + 12)·k` weights.
 //!
 //! Choices: resizes use half-pixel bilinear (`align_corners=False`, [`pixl_nn::ops::resize_bilinear`],
 //! differentiable) where DPT uses `align_corners=True`; `refinenet4` has no `resConfUnit1`
@@ -42,6 +48,8 @@ pub struct DptHead {
     scratch: DptFusion<Conv>,
     /// `scratch.output_conv2.0`.
     output_conv2: Conv,
+    /// `input_skip` (step 6), when `head.input_skip > 0`.
+    input_skip: Option<Conv>,
 }
 
 impl DptHead {
@@ -60,16 +68,35 @@ impl DptHead {
             resize_layers: DptReassemble::new(oc, vb.pp("resize_layers"))?,
             scratch: DptFusion::new(oc, f, resize_bilinear, vs.clone())?,
             output_conv2: conv2d(f / 2, cfg.head.hidden, 3, pad1, vs.pp("output_conv2").pp(0))?,
+            input_skip: match cfg.head.input_skip {
+                0 => None,
+                k => Some(conv2d(
+                    cfg.head.hidden + 12,
+                    k,
+                    1,
+                    Default::default(),
+                    vb.pp("input_skip"),
+                )?),
+            },
         })
     }
 
-    /// Four readouts `(B, d, gh, gw)` → `F` `(B, C', h, w)`.
-    pub fn forward(&self, readouts: &[Tensor], h: usize, w: usize) -> Result<Tensor> {
+    /// Four readouts `(B, d, gh, gw)` and the padded inputs `src` `(B, 3, H, W)`, `ct`
+    /// `(B, 9, H, W)` → `F` `(B, C' + k, H, W)`.
+    pub fn forward(&self, readouts: &[Tensor], src: &Tensor, ct: &Tensor) -> Result<Tensor> {
         if readouts.len() != 4 {
             candle_core::bail!("DPT head expects 4 readouts, got {}", readouts.len());
         }
+        let (_, _, h, w) = src.dims4()?;
         let layers = (0..4).map(|i| self.resize_layers.forward(i, &self.projects[i].forward(&readouts[i])?));
         let out = self.scratch.forward(layers, h, w)?;
-        self.output_conv2.forward_fused(&out, false, None, Act::Relu)
+        let f = self.output_conv2.forward_fused(&out, false, None, Act::Relu)?;
+        match &self.input_skip {
+            None => Ok(f),
+            Some(skip) => {
+                let pixels = skip.forward_fused(&Tensor::cat(&[&f, src, ct], 1)?, false, None, Act::Relu)?;
+                Tensor::cat(&[&f, &pixels], 1)
+            }
+        }
     }
 }
