@@ -444,30 +444,30 @@ fn class_token_and_layer_scale_variant_trains_and_counts() {
     assert_eq!(Config::from_json(&cfg.to_json()).unwrap(), cfg);
 }
 
-/// The per-pixel input skip (`head.input_skip = k`, not in the paper): the built network has the
-/// closed-form count (the skip's `(C' + 12)·k + k` weights and a modulation conv `C' + k` wide),
-/// every parameter gets a gradient, a fresh network still returns its source bitwise, and the
-/// map `F'` fed to the modulation is `[F; relu(W [F; I_S; C_T] + b)]` — checked against a naive
-/// f64 evaluation of that 1×1 conv on the network's own `F` and inputs. Configs without the skip
-/// read and write as before.
+/// The per-pixel source skip (`head.source_skip = k`, not in the paper): the built network has
+/// the closed-form count (the skip's `(C' + 3)·k + k` weights and a modulation conv `C' + k`
+/// wide), every parameter gets a gradient, a fresh network still returns its source bitwise,
+/// and the map `F'` fed to the modulation is `[F; relu(W [F; I_S] + b)]` — checked against a
+/// naive f64 evaluation of that 1×1 conv on the network's own `F` and source, which must not
+/// depend on `C_T` except through `F`. Configs without the skip read and write as before.
 #[test]
-fn input_skip_variant_trains_counts_and_reads_the_inputs_per_pixel() {
+fn source_skip_variant_trains_counts_and_reads_the_source_per_pixel() {
     let k = 5;
     let mut cfg = Config::tiny();
-    cfg.head.input_skip = k;
+    cfg.head.source_skip = k;
     let hid = cfg.head.hidden;
     let (vm, model) = build_trainable(&cfg, 3, &Device::Cpu).unwrap();
     assert_eq!(varmap_count(&vm), cfg.param_count());
     assert_eq!(
         cfg.param_count(),
-        Config::tiny().param_count() + (hid + 12) * k + k + 6 * k
+        Config::tiny().param_count() + (hid + 3) * k + k + 6 * k
     );
     let shapes = param_shapes(&cfg).unwrap();
-    assert_eq!(shapes["head.input_skip.weight"], vec![k, hid + 12, 1, 1]);
+    assert_eq!(shapes["head.source_skip.weight"], vec![k, hid + 3, 1, 1]);
     assert_eq!(shapes["modulation.conv.weight"], vec![6, hid + k, 1, 1]);
 
     let mut rng = Rng::new(11);
-    let (h, w) = (24, 40); // padded to 32 × 48 inside: the skip must see the padded inputs
+    let (h, w) = (24, 40); // padded to 32 × 48 inside: the skip must see the padded source
     let src = rand_tensor(&mut rng, &[2, 3, h, w], 0.2, 0.8);
     let ct = rand_tensor(&mut rng, &[2, 9, h, w], 0.0, 1.5);
     let out = model.forward(&src, &ct).unwrap();
@@ -476,35 +476,34 @@ fn input_skip_variant_trains_counts_and_reads_the_inputs_per_pixel() {
     let data = vm.data().lock().unwrap();
     let wm = &data["modulation.conv.weight"];
     wm.set(&rand_tensor(&mut rng, wm.dims(), -0.05, 0.05)).unwrap();
-    let bias = &data["head.input_skip.bias"];
+    let bias = &data["head.source_skip.bias"];
     bias.set(&rand_tensor(&mut rng, bias.dims(), -0.1, 0.1)).unwrap();
 
     let f = model.features(&src, &ct).unwrap();
     assert_eq!(f.dims(), &[2, hid + k, h, w]);
-    let (fv, sv, cv) = (to_vec(&f), to_vec(&src), to_vec(&ct));
+    let (fv, sv) = (to_vec(&f), to_vec(&src));
     let (wv, bv) = (
-        to_vec(data["head.input_skip.weight"].as_tensor()),
+        to_vec(data["head.source_skip.weight"].as_tensor()),
         to_vec(bias.as_tensor()),
     );
     let px = h * w;
     let mut worst = 0f64;
     for b in 0..2 {
         for i in 0..px {
-            let mut input = Vec::with_capacity(hid + 12);
+            let mut input = Vec::with_capacity(hid + 3);
             input.extend((0..hid).map(|c| fv[(b * (hid + k) + c) * px + i] as f64));
             input.extend((0..3).map(|c| sv[(b * 3 + c) * px + i] as f64));
-            input.extend((0..9).map(|c| cv[(b * 9 + c) * px + i] as f64));
             for o in 0..k {
                 let z: f64 = bv[o] as f64
-                    + (0..hid + 12)
-                        .map(|j| wv[o * (hid + 12) + j] as f64 * input[j])
+                    + (0..hid + 3)
+                        .map(|j| wv[o * (hid + 3) + j] as f64 * input[j])
                         .sum::<f64>();
                 let got = fv[(b * (hid + k) + hid + o) * px + i] as f64;
                 worst = worst.max((got - z.max(0.0)).abs());
             }
         }
     }
-    assert!(worst < 1e-5, "input skip differs from the naive 1×1 conv by {worst}");
+    assert!(worst < 1e-5, "source skip differs from the naive 1×1 conv by {worst}");
     assert!(
         fv.iter().skip(hid * px).take(k * px).any(|x| *x > 0.0),
         "the skip is not all zero"
@@ -521,6 +520,6 @@ fn input_skip_variant_trains_counts_and_reads_the_inputs_per_pixel() {
     let offenders = gradient_offenders(&data, &grads);
     assert!(offenders.is_empty(), "{}", offenders.join("\n"));
 
-    assert!(!Config::tiny().to_json().contains("input_skip"));
+    assert!(!Config::tiny().to_json().contains("source_skip"));
     assert_eq!(Config::from_json(&cfg.to_json()).unwrap(), cfg);
 }
