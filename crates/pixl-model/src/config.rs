@@ -28,10 +28,6 @@ fn is_default_patch(p: &usize) -> bool {
     *p == PATCH
 }
 
-fn is_zero(n: &usize) -> bool {
-    *n == 0
-}
-
 fn is_false(b: &bool) -> bool {
     !*b
 }
@@ -106,12 +102,6 @@ pub struct DptConfig {
     pub features: usize,
     /// Channels `C'` of the full-resolution map `F` fed to the 1×1 modulation conv (DA: 32).
     pub hidden: usize,
-    /// Channels of the per-pixel source skip (**not in the paper**; 0, the default, is the
-    /// paper's head): `head.source_skip`, a 1×1 conv with ReLU over `[F; I_S]` at full
-    /// resolution, whose output joins `F` before the modulation conv, so the gain and bias can
-    /// depend on each source pixel's own value and not only on what the tokens carry ([`crate::dpt`]).
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub source_skip: usize,
 }
 
 /// All hyper-parameters of [`crate::PixlRelight`].
@@ -191,7 +181,6 @@ impl Config {
                 out_channels: [256, 512, 1024, 1024],
                 features: 256,
                 hidden: 32,
-                source_skip: 0,
             },
         }
     }
@@ -228,7 +217,6 @@ impl Config {
                 out_channels: [48, 96, 192, 384],
                 features: 128,
                 hidden: 32,
-                source_skip: 0,
             },
         }
     }
@@ -267,7 +255,6 @@ impl Config {
                 out_channels: [16, 32, 64, 64],
                 features: 32,
                 hidden: 16,
-                source_skip: 0,
             },
         }
     }
@@ -437,10 +424,7 @@ impl Config {
         let rcu = 2 * conv(f, f, 3);
         head += 4 * (rcu + conv(f, f, 1)) + 3 * rcu;
         head += conv(f, f / 2, 3) + conv(f / 2, h.hidden, 3);
-        if h.source_skip > 0 {
-            head += conv(h.hidden + 3, h.source_skip, 1);
-        }
-        let modulation = conv(h.hidden + h.source_skip, 6, 1);
+        let modulation = conv(h.hidden, 6, 1);
         vec![
             ("src_encoder", src),
             ("cond_encoder", cond),

@@ -2,9 +2,8 @@
 //! turns the four trunk readouts into one dense map `F` of `C' = head.hidden` channels at full
 //! resolution.
 //!
-//! Input four `(B, d, gh, gw)` readouts and the padded source `I_S` `(B, 3, H, W)`,
-//! `(H, W) = (p·gh, p·gw)` (`p` the patch size); output `F`: `(B, C' + k, H, W)`, non-negative
-//! (ReLU), `k = head.source_skip` (0 in the paper: the source is not read here).
+//! Input four `(B, d, gh, gw)` readouts and the padded image size `(H, W) = (p·gh, p·gw)` (`p` the patch size);
+//! output `F`: `(B, C', H, W)`, non-negative (ReLU).
 //!
 //! Steps and names (Depth Anything v2 `DPTHead`):
 //! 1. `projects.{i}`: 1×1 conv `d → out_channels[i]`;
@@ -18,14 +17,7 @@
 //!    stride 2) and applies `out_conv` (1×1). A residual conv unit is
 //!    `x + conv2(relu(conv1(relu(x))))` with 3×3 convs;
 //! 5. `scratch.output_conv1` (3×3, `features → features/2`), bilinear resize to `(H, W)`,
-//!    `scratch.output_conv2.0` (3×3, `features/2 → C'`), ReLU;
-//! 6. only with `head.source_skip = k > 0` (**not in the paper**): `source_skip`, a 1×1 conv
-//!    `C' + 3 → k` with ReLU over `[F; I_S]`, appended to `F`. The tokens carry each `p × p`
-//!    patch as one vector, so without it the gain and bias cannot depend on a pixel's own
-//!    value (a tone curve, a dark texture detail inside a lit patch); with it they can, at the
-//!    cost of `(C' + 3)·k` weights. `C_T` is deliberately not read per pixel: the exact
-//!    conditioning of training shares the target's pixel noise (it composes to the target), so
-//!    a per-pixel path from it learns to copy what the coarse `C_T` of inference does not have.
+//!    `scratch.output_conv2.0` (3×3, `features/2 → C'`), ReLU.
 //!
 //! Choices: resizes use half-pixel bilinear (`align_corners=False`, [`pixl_nn::ops::resize_bilinear`],
 //! differentiable) where DPT uses `align_corners=True`; `refinenet4` has no `resConfUnit1`
@@ -50,8 +42,6 @@ pub struct DptHead {
     scratch: DptFusion<Conv>,
     /// `scratch.output_conv2.0`.
     output_conv2: Conv,
-    /// `source_skip` (step 6), when `head.source_skip > 0`.
-    source_skip: Option<Conv>,
 }
 
 impl DptHead {
@@ -70,35 +60,16 @@ impl DptHead {
             resize_layers: DptReassemble::new(oc, vb.pp("resize_layers"))?,
             scratch: DptFusion::new(oc, f, resize_bilinear, vs.clone())?,
             output_conv2: conv2d(f / 2, cfg.head.hidden, 3, pad1, vs.pp("output_conv2").pp(0))?,
-            source_skip: match cfg.head.source_skip {
-                0 => None,
-                k => Some(conv2d(
-                    cfg.head.hidden + 3,
-                    k,
-                    1,
-                    Default::default(),
-                    vb.pp("source_skip"),
-                )?),
-            },
         })
     }
 
-    /// Four readouts `(B, d, gh, gw)` and the padded source `src` `(B, 3, H, W)` → `F`
-    /// `(B, C' + k, H, W)`.
-    pub fn forward(&self, readouts: &[Tensor], src: &Tensor) -> Result<Tensor> {
+    /// Four readouts `(B, d, gh, gw)` → `F` `(B, C', h, w)`.
+    pub fn forward(&self, readouts: &[Tensor], h: usize, w: usize) -> Result<Tensor> {
         if readouts.len() != 4 {
             candle_core::bail!("DPT head expects 4 readouts, got {}", readouts.len());
         }
-        let (_, _, h, w) = src.dims4()?;
         let layers = (0..4).map(|i| self.resize_layers.forward(i, &self.projects[i].forward(&readouts[i])?));
         let out = self.scratch.forward(layers, h, w)?;
-        let f = self.output_conv2.forward_fused(&out, false, None, Act::Relu)?;
-        match &self.source_skip {
-            None => Ok(f),
-            Some(skip) => {
-                let pixels = skip.forward_fused(&Tensor::cat(&[&f, src], 1)?, false, None, Act::Relu)?;
-                Tensor::cat(&[&f, &pixels], 1)
-            }
-        }
+        self.output_conv2.forward_fused(&out, false, None, Act::Relu)
     }
 }

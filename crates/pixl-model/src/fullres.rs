@@ -439,18 +439,13 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
     // Modulation: F, then the six maps (f32: the matrix product added to the bias in place;
     // bf16: F's copy for candle's 1×1 conv, result, output, bias), then the cropped gain and bias
     // as f32 vectors.
-    // The source skip (`head.source_skip = k`, not in the paper): F, its concatenation with the
-    // padded source, the 1×1 conv's output and the joined map F' of C' + k channels.
-    let k = u(h.source_skip);
-    let source_skip = cs * (hid + (hid + 3) + k + (hid + k)) * px;
-    let hid = hid + k;
     let modulation = if fast {
         cs * (hid * px + 6 * px)
     } else {
         cs * (2 * hid * px + 18 * px)
     } + 2 * 6 * hw * f;
 
-    let mut stages = vec![
+    let stages = vec![
         ("patch embedding", base + patch_embed),
         ("source encoder", base + src_blocks),
         ("intrinsics encoder", base + cond),
@@ -462,9 +457,6 @@ pub fn plan_memory_threads(cfg: &Config, dtype: DType, width: usize, height: usi
         ("head (full-resolution convs)", base + tail),
         ("modulation", base + modulation),
     ];
-    if k > 0 {
-        stages.insert(stages.len() - 1, ("head (source skip)", base + source_skip));
-    }
     MemoryPlan {
         width,
         height,

@@ -6,7 +6,7 @@
 //! Pipeline: pad both inputs on the bottom and right to multiples of the patch size `p` (16) by
 //! **replicating the edge** (reflection is undefined for a 1-pixel image; replication never invents new values),
 //! `src_encoder` (ViT) and `cond_encoder` (ConvNeXt) → per-location `fuse` → `trunk` (registers,
-//! 2D RoPE) → four readouts → `head` (DPT; with `head.source_skip`, also the padded source) → `modulation` (1×1 conv → gain, bias), cropped back
+//! 2D RoPE) → four readouts → `head` (DPT) → `modulation` (1×1 conv → gain, bias), cropped back
 //! to `(H, W)` and applied to the unpadded source in f32.
 //!
 //! Inputs are cast to the weights' dtype (f32 or bf16) for the network itself.
@@ -59,7 +59,7 @@ impl PixlRelight {
             fuse: Fusion::new(cfg, vb.pp("fuse"))?,
             trunk: Trunk::new(cfg, vb.pp("trunk"))?,
             head: DptHead::new(cfg, vb.pp("head"))?,
-            modulation: Modulation::new(cfg.head.hidden + cfg.head.source_skip, vb.pp("modulation"))?,
+            modulation: Modulation::new(cfg.head.hidden, vb.pp("modulation"))?,
             cfg: cfg.clone(),
             dtype: vb.dtype(),
         })
@@ -119,8 +119,7 @@ impl PixlRelight {
         Ok((crop(g)?, crop(bias)?))
     }
 
-    /// The DPT map `F` `(B, C' + head.source_skip, H, W)` fed to the modulation conv, cropped to
-    /// the input size.
+    /// The DPT map `F` `(B, C', H, W)` fed to the modulation conv, cropped to the input size.
     pub fn features(&self, src: &Tensor, ct: &Tensor) -> Result<Tensor> {
         let (_b, _c, h, w) = src.dims4()?;
         self.padded_features(src, ct)?.narrow(2, 0, h)?.narrow(3, 0, w)
@@ -133,7 +132,7 @@ impl PixlRelight {
         let cond_tokens = self.cond_encoder.forward(&p.ct)?;
         let tokens = self.fuse.forward(&src_tokens, &cond_tokens)?;
         let readouts = self.trunk.forward(&tokens, p.gh, p.gw)?;
-        self.head.forward(&readouts, &p.src)
+        self.head.forward(&readouts, p.ph, p.pw)
     }
 
     // ---- Segment API (gradient checkpointing in pixl-train) ----
@@ -209,7 +208,7 @@ impl PixlRelight {
             .collect::<Result<Vec<_>>>()?;
         let gb = self
             .modulation
-            .gain_bias_stacked(&self.head.forward(&readouts, &p.src)?)?;
+            .gain_bias_stacked(&self.head.forward(&readouts, p.ph, p.pw)?)?;
         crate::modulation::affine_padded(&src.to_dtype(DType::F32)?, &gb)
     }
 
@@ -220,7 +219,7 @@ impl PixlRelight {
             .iter()
             .map(|xs| self.trunk.readout(xs, &p.grid))
             .collect::<Result<Vec<_>>>()?;
-        let (g, bias) = self.modulation.gain_bias(&self.head.forward(&readouts, &p.src)?)?;
+        let (g, bias) = self.modulation.gain_bias(&self.head.forward(&readouts, p.ph, p.pw)?)?;
         let crop = |t: Tensor| -> Result<Tensor> { t.narrow(2, 0, p.h)?.narrow(3, 0, p.w) };
         Ok((crop(g)?, crop(bias)?))
     }

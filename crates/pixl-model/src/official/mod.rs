@@ -517,7 +517,6 @@ fn infer(v: &View, y: Option<&OfficialYaml>, problems: &mut Vec<String>, notes: 
             out_channels,
             features,
             hidden,
-            source_skip: 0,
         },
     };
     if let Err(e) = cfg.validate() {
