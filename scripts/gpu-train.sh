@@ -24,9 +24,11 @@
 #             alternating), each chunk its own seed, into DATA/<seed>/. The trainer reads DATA again
 #             every 25 steps (`[data] refresh_every`), so scenes join as they are finished.
 #  3. train   pixl train --minutes M on the device: the model of assets/gpu-weights/model.toml
-#             (--quick: assets/demo-weights/tiny-p8.toml), bf16 compute with f32 master weights on
-#             CUDA, a checkpoint every 2 minutes, each exported at once to OUT/weights/ as bf16 parts
-#             of at most 16 MiB (pixl weights split), so a call cut short still returns its last one.
+#             (--quick: assets/demo-weights/tiny-p8.toml), L1 with 0.8 of it after the evaluation's
+#             scale correction ([loss] scale_corrected; assets/demo-weights/README.md), bf16 compute
+#             with f32 master weights on CUDA, a checkpoint every 2 minutes, each exported at once
+#             to OUT/weights/ as bf16 parts of at most 16 MiB (pixl weights split), so a call cut
+#             short still returns its last one.
 #  4. eval    pixl eval on the held-out set in the paper's inference setting (--ct coarse): the new
 #             weights against the bundled ones (assets/demo-weights), identity, compose and
 #             compose-camera, PSNR / SSIM and the light-response gain; OUT/sheet.png shows its first
@@ -47,7 +49,7 @@ ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 cd "$ROOT"
 
 case "${1:-}" in
-  "" | -h | --help) sed -n '2,43p' "$0"; exit 0 ;;
+  "" | -h | --help) sed -n '2,46p' "$0"; exit 0 ;;
   -*) echo "gpu-train.sh: the first argument is the output folder" >&2; exit 2 ;;
 esac
 OUT="$1"; shift
@@ -192,6 +194,7 @@ weight_decay = 0.05
 
 [loss]
 perceptual_weight = 0.0
+scale_corrected = 0.8
 
 [augment]
 enabled = true
