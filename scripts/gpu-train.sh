@@ -49,7 +49,7 @@ ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 cd "$ROOT"
 
 case "${1:-}" in
-  "" | -h | --help) sed -n '2,46p' "$0"; exit 0 ;;
+  "" | -h | --help) sed -n '2,/^set -uo pipefail/p' "$0" | sed '$d'; exit 0 ;;
   -*) echo "gpu-train.sh: the first argument is the output folder" >&2; exit 2 ;;
 esac
 OUT="$1"; shift
